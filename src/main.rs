@@ -1,0 +1,18 @@
+//! `stylenerf`: the all-in-one binary. Every command group lives in its own module under
+//! `cli/`; this file only parses the command line, sets up logging and dispatches.
+
+mod cli;
+
+use clap::Parser;
+
+fn main() -> std::process::ExitCode {
+    let args = cli::Cli::parse();
+    cli::init_tracing(&args.global);
+    match cli::run(args) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
