@@ -3,7 +3,17 @@
 //! and the stages the worker runs.
 
 pub mod camera;
+pub mod checkpoint;
 pub mod error;
+pub mod field;
+pub mod image_io;
+pub mod optim;
+pub mod preset;
+pub mod render;
+pub mod rng;
 pub mod scene;
+pub mod stages;
+pub mod style2d;
+pub mod views;
 
 pub use error::{EngineError, Result};

@@ -1,1 +1,28 @@
-//! placeholder
+//! The StylizedNeRF coordinator: accepts scene + style jobs over gRPC, persists them in SQLite,
+//! splits each job into its five stage tasks and leases them to workers, stores inputs and
+//! artifacts in an object store, and exposes health, reflection and Prometheus metrics.
+//!
+//! Embedding: `Coordinator::start(CoordinatorConfig::local(dir))` returns a handle with
+//! `local_addr()`, `endpoint()` and `shutdown()`.
+
+mod api;
+pub mod auth;
+pub mod bench;
+pub mod config;
+mod coordinator;
+mod db;
+pub mod errors;
+mod events;
+mod inputs;
+mod jobs;
+mod metrics_http;
+mod model;
+mod scheduler;
+mod state;
+pub mod storage;
+pub mod validation;
+
+pub use auth::{AuthConfig, Role, TokenEntry};
+pub use config::{CoordinatorArgs, CoordinatorConfig, Limits, TlsConfig};
+pub use coordinator::{Coordinator, CoordinatorHandle};
+pub use stylenerf_proto as proto;

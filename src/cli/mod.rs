@@ -2,7 +2,12 @@
 
 use clap::{Args, Parser, Subcommand};
 
+mod bench_coordinator;
+mod common;
+mod coordinator;
+mod nerf;
 mod scene;
+mod weights;
 
 /// StylizedNeRF: consistent 3D scene stylization as a distributed training service.
 #[derive(Debug, Parser)]
@@ -36,6 +41,24 @@ pub enum Command {
     /// Generate or inspect scenes.
     #[command(subcommand)]
     Scene(scene::SceneCommand),
+    /// Train a radiance field and render its views.
+    #[command(subcommand)]
+    Nerf(nerf::NerfCommand),
+    /// Import and inspect pretrained VGG encoder weights.
+    #[command(subcommand)]
+    Weights(weights::WeightsCommand),
+    /// Run the coordinator: the gRPC job and worker APIs, SQLite, artifacts, metrics.
+    Coordinator(coordinator::CoordinatorCommand),
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+/// `stylenerf bench ...`
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Coordinator throughput and latency on loopback with a real SQLite file.
+    Coordinator(stylenerf_server::bench::BenchOptions),
 }
 
 pub fn init_tracing(global: &GlobalArgs) {
@@ -53,5 +76,9 @@ pub fn init_tracing(global: &GlobalArgs) {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Scene(cmd) => scene::run(cmd),
+        Command::Nerf(cmd) => nerf::run(cmd),
+        Command::Weights(cmd) => weights::run(cmd),
+        Command::Coordinator(cmd) => coordinator::run(cmd),
+        Command::Bench(BenchCommand::Coordinator(options)) => bench_coordinator::run(options),
     }
 }

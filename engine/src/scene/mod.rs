@@ -2,15 +2,30 @@
 //! formats users already have (nerfstudio, NeRF-synthetic/Blender, LLFF) or generated.
 //!
 //! Every loader produces the same [`Scene`]; the rest of the engine never looks at file
-//! formats.
+//! formats. [`Scene::load`] detects the format; `docs/SCENES.md` describes each one.
 
-use std::path::PathBuf;
+pub mod blender;
+mod bounds;
+mod distortion;
+mod frames;
+pub mod generate;
+mod images;
+mod json;
+pub mod llff;
+pub mod nerfstudio;
+pub mod npy;
+mod paths;
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
 
 use glam::Vec3;
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, Ndc};
+use crate::{EngineError, Result};
 
 /// Axis-aligned box that contains the scene content, in the space the field works in (world
 /// space, or NDC space for forward-facing scenes).
@@ -46,7 +61,7 @@ pub struct Frame {
     /// File name relative to the dataset root, used in messages and outputs.
     pub name: String,
     pub camera: Camera,
-    /// Linear RGB in [0, 1], already composited on the scene background where the source had
+    /// RGB in [0, 1] as stored in the file (no gamma decoding, as in NeRF), already composited on the scene background where the source had
     /// alpha, and resized to the camera's intrinsics.
     pub image: Rgb32FImage,
     /// Ground-truth z-depth per pixel (row-major, world units; 0 where unknown), when the
@@ -74,4 +89,216 @@ pub struct Scene {
     pub ndc: Option<Ndc>,
     /// Colour of empty space: rendered colour = Σ w c + (1 − opacity) · background.
     pub background: [f32; 3],
+}
+
+/// The dataset formats [`Scene::load`] understands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SceneFormat {
+    /// nerfstudio / instant-ngp `transforms.json`.
+    Nerfstudio,
+    /// NeRF-synthetic `transforms_{train,val,test}.json`.
+    Blender,
+    /// LLFF `poses_bounds.npy` + `images/` (forward-facing, NDC rays).
+    Llff,
+}
+
+impl SceneFormat {
+    pub const ALL: [SceneFormat; 3] = [Self::Nerfstudio, Self::Blender, Self::Llff];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Nerfstudio => "nerfstudio",
+            Self::Blender => "blender",
+            Self::Llff => "llff",
+        }
+    }
+
+    /// The file that marks a folder as holding this format.
+    pub fn marker(self) -> &'static str {
+        match self {
+            Self::Nerfstudio => nerfstudio::TRANSFORMS,
+            Self::Blender => blender::TRAIN,
+            Self::Llff => llff::POSES_BOUNDS,
+        }
+    }
+
+    /// The format of the dataset at `path` (a folder, or one of the marker files) and its
+    /// folder. A folder holding several formats is read as the first of nerfstudio, Blender,
+    /// LLFF.
+    pub fn detect(path: &Path) -> Result<(SceneFormat, PathBuf)> {
+        if path.is_file() {
+            let name = path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or_default();
+            let dir = paths::parent_dir(path).to_path_buf();
+            return match name {
+                blender::TRAIN | blender::VAL | blender::TEST => Ok((Self::Blender, dir)),
+                llff::POSES_BOUNDS => Ok((Self::Llff, dir)),
+                n if n.ends_with(".json") => Ok((Self::Nerfstudio, path.to_path_buf())),
+                _ => Err(EngineError::dataset(
+                    path,
+                    "(format)",
+                    "not a dataset file: expected transforms.json, transforms_train.json or poses_bounds.npy",
+                )),
+            };
+        }
+        if !path.is_dir() {
+            return Err(EngineError::dataset(
+                path,
+                "(path)",
+                "no such file or folder",
+            ));
+        }
+        Self::ALL
+            .into_iter()
+            .find(|f| path.join(f.marker()).is_file())
+            .map(|f| (f, path.to_path_buf()))
+            .ok_or_else(|| {
+                EngineError::dataset(
+                    path,
+                    "(format)",
+                    "no transforms.json (nerfstudio), transforms_train.json (Blender) or poses_bounds.npy (LLFF) in this folder",
+                )
+            })
+    }
+}
+
+impl fmt::Display for SceneFormat {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for SceneFormat {
+    type Err = EngineError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|f| f.name() == s)
+            .ok_or_else(|| {
+                EngineError::config(
+                    "format",
+                    format!("unknown scene format `{s}`: expected nerfstudio, blender or llff"),
+                )
+            })
+    }
+}
+
+/// How to load a dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LoadOptions {
+    /// Force a format instead of detecting it.
+    pub format: Option<SceneFormat>,
+    /// Integer factor to shrink images by (intrinsics follow). LLFF uses `images_<factor>/`
+    /// when present.
+    pub downscale: u32,
+    /// Without an explicit split, every `test_every`-th frame (starting with the first) is a
+    /// test frame; 0 means no test split.
+    pub test_every: usize,
+    /// Keep at most this many frames, shared between the splits and evenly spaced.
+    pub max_frames: Option<usize>,
+    /// Background colour to composite RGBA images on and to render empty space with. `None`:
+    /// the dataset's own (`background` in a nerfstudio file), else white.
+    pub background: Option<[f32; 3]>,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self {
+            format: None,
+            downscale: 1,
+            test_every: 8,
+            max_frames: None,
+            background: None,
+        }
+    }
+}
+
+impl LoadOptions {
+    fn validate(&self) -> Result<()> {
+        if self.downscale == 0 {
+            return Err(EngineError::config("downscale", "must be at least 1"));
+        }
+        if self.max_frames == Some(0) {
+            return Err(EngineError::config("max_frames", "must be at least 1"));
+        }
+        if let Some(bg) = self.background {
+            if !bg.iter().all(|c| (0.0..=1.0).contains(c)) {
+                return Err(EngineError::config(
+                    "background",
+                    format!("{bg:?}: components must be in [0, 1]"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn background_or(&self, dataset: Option<[f32; 3]>) -> [f32; 3] {
+        self.background.or(dataset).unwrap_or([1.0; 3])
+    }
+}
+
+impl Scene {
+    /// Loads the dataset at `path`: a folder, or a `transforms.json`,
+    /// `transforms_train.json` or `poses_bounds.npy` file.
+    pub fn load(path: impl AsRef<Path>, opts: &LoadOptions) -> Result<Scene> {
+        let path = path.as_ref();
+        let (format, found) = match opts.format {
+            Some(f) if path.is_dir() => (f, path.join(f.marker())),
+            Some(f) => (f, path.to_path_buf()),
+            None => SceneFormat::detect(path)?,
+        };
+        match format {
+            SceneFormat::Nerfstudio if found.is_dir() => {
+                nerfstudio::load(&found.join(nerfstudio::TRANSFORMS), opts)
+            }
+            SceneFormat::Nerfstudio => nerfstudio::load(&found, opts),
+            SceneFormat::Blender => blender::load(dir_of(&found), opts),
+            SceneFormat::Llff => llff::load(dir_of(&found), opts),
+        }
+    }
+
+    /// Size of the first frame (all frames of the supported formats share it in practice).
+    pub fn resolution(&self) -> (u32, u32) {
+        self.frames.first().map_or((0, 0), |f| {
+            (f.camera.intrinsics.width, f.camera.intrinsics.height)
+        })
+    }
+}
+
+/// The folder of a dataset given either as the folder or as a file in it.
+fn dir_of(path: &Path) -> &Path {
+    if path.is_dir() {
+        path
+    } else {
+        paths::parent_dir(path)
+    }
+}
+
+/// Errors out when a split that must not be empty is.
+fn require_split(
+    split: &frames::Split,
+    opts: &LoadOptions,
+    file: &Path,
+    field: &str,
+) -> Result<()> {
+    if split.train.is_empty() {
+        return Err(EngineError::dataset(
+            file,
+            field,
+            "the training split is empty",
+        ));
+    }
+    if split.test.is_empty() && opts.test_every > 0 {
+        return Err(EngineError::dataset(
+            file,
+            field,
+            "the test split is empty (set test_every to 0 to train without one)",
+        ));
+    }
+    Ok(())
 }

@@ -1,0 +1,234 @@
+//! The radiance field proper: hash-grid encoding → density network (σ and geometry features)
+//! → colour network conditioned on the view direction.
+//!
+//! Density and colour are separate sets of variables ([`RadianceField::density_vars`],
+//! [`RadianceField::colour_vars`]) so density can be frozen after pretraining, and the
+//! geometry features are exposed ([`FieldSamples::geometry`]) for the stylized NeRF's style
+//! module to reuse.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor, Var};
+use serde::{Deserialize, Serialize};
+
+use crate::field::hash_grid::{self, HashGrid, HashGridConfig};
+use crate::field::mlp::{load_vars, Mlp};
+use crate::field::occupancy::OccupancyGrid;
+use crate::field::sh::sh16;
+use crate::render::march::Samples;
+use crate::rng::Rng;
+use crate::scene::Aabb;
+use crate::{EngineError, Result};
+
+/// Architecture of the field.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FieldConfig {
+    pub grid: HashGridConfig,
+    pub density_hidden: usize,
+    /// Geometry features output next to σ (fed to the colour and style networks).
+    pub geometry_features: usize,
+    pub colour_hidden: usize,
+    pub occupancy_resolution: usize,
+    /// Added to the raw density before the exponential: sets the initial density (e^bias per
+    /// unit length), so a fresh field is a light haze rather than a fog.
+    pub density_bias: f32,
+}
+
+/// Field-network inputs and outputs at a set of samples.
+pub struct FieldSamples {
+    /// Density σ [N] (≥ 0).
+    pub sigma: Tensor,
+    /// Geometry features [N, G].
+    pub geometry: Tensor,
+    /// Positions normalised to [0, 1]³ [N, 3].
+    pub points01: Tensor,
+    /// SH encoding of the view direction [N, 16].
+    pub view_sh: Tensor,
+}
+
+pub struct RadianceField {
+    pub config: FieldConfig,
+    pub aabb: Aabb,
+    pub grid: HashGrid,
+    pub density_net: Mlp,
+    pub colour_net: Mlp,
+    pub occupancy: OccupancyGrid,
+}
+
+/// Largest raw density before the exponential (keeps σ finite in f32).
+const MAX_LOG_SIGMA: f64 = 15.0;
+
+impl RadianceField {
+    pub fn new(config: FieldConfig, aabb: Aabb, rng: &mut Rng, device: &Device) -> Result<Self> {
+        let grid = HashGrid::new(config.grid, device)?;
+        let density_net = Mlp::new(
+            "density",
+            &[
+                config.grid.output_dim(),
+                config.density_hidden,
+                1 + config.geometry_features,
+            ],
+            rng,
+            DType::F32,
+            device,
+        )?;
+        let colour_net = Mlp::new(
+            "colour",
+            &[
+                config.geometry_features + 16,
+                config.colour_hidden,
+                config.colour_hidden,
+                3,
+            ],
+            rng,
+            DType::F32,
+            device,
+        )?;
+        Ok(Self {
+            config,
+            aabb,
+            grid,
+            density_net,
+            colour_net,
+            occupancy: OccupancyGrid::new(config.occupancy_resolution, aabb),
+        })
+    }
+
+    pub fn device(&self) -> &Device {
+        self.grid.table.device()
+    }
+
+    /// Variables that define density and geometry (frozen after pretraining).
+    pub fn density_vars(&self) -> Vec<(String, Var)> {
+        let mut v = vec![("grid.table".to_string(), self.grid.table.clone())];
+        v.extend(self.density_net.vars());
+        v
+    }
+
+    /// Variables of the view-dependent colour head.
+    pub fn colour_vars(&self) -> Vec<(String, Var)> {
+        self.colour_net.vars()
+    }
+
+    pub fn vars(&self) -> Vec<(String, Var)> {
+        let mut v = self.density_vars();
+        v.extend(self.colour_vars());
+        v
+    }
+
+    /// Normalised positions [N, 3] for packed field-space positions.
+    pub fn points01(&self, positions: &[f32]) -> Result<Tensor> {
+        let p = hash_grid::normalise(positions, self.aabb.min, self.aabb.size());
+        Ok(Tensor::from_vec(
+            p,
+            (positions.len() / 3, 3),
+            self.device(),
+        )?)
+    }
+
+    /// σ and geometry features at normalised points.
+    pub fn geometry(&self, points01: &Tensor) -> Result<(Tensor, Tensor)> {
+        let h = self.density_net.forward(&self.grid.encode(points01)?)?;
+        let raw = (h.narrow(1, 0, 1)?.squeeze(1)? + self.config.density_bias as f64)?;
+        let sigma = raw.clamp(-MAX_LOG_SIGMA, MAX_LOG_SIGMA)?.exp()?;
+        let geometry = h.narrow(1, 1, self.config.geometry_features)?;
+        Ok((sigma, geometry))
+    }
+
+    /// σ at packed field-space positions, without gradients (occupancy updates, pruning).
+    pub fn density_values(&self, positions: &[f32]) -> Result<Vec<f32>> {
+        let mut out = Vec::with_capacity(positions.len() / 3);
+        for chunk in positions.chunks(3 * 65536) {
+            let (sigma, _) = self.geometry(&self.points01(chunk)?)?;
+            out.extend(sigma.detach().to_vec1::<f32>()?);
+        }
+        Ok(out)
+    }
+
+    /// Evaluates the geometry at `samples`, with the view directions of their rays.
+    pub fn samples(&self, samples: &Samples, view_dirs: &[glam::Vec3]) -> Result<FieldSamples> {
+        let points01 = self.points01(&samples.positions)?;
+        let (sigma, geometry) = self.geometry(&points01)?;
+        let sh: Vec<f32> = samples
+            .ray
+            .iter()
+            .flat_map(|&r| sh16(view_dirs[r as usize].to_array()))
+            .collect();
+        let view_sh = Tensor::from_vec(sh, (samples.ray.len(), 16), self.device())?;
+        Ok(FieldSamples {
+            sigma,
+            geometry,
+            points01,
+            view_sh,
+        })
+    }
+
+    /// The photoreal colour of the field at evaluated samples [N, 3].
+    pub fn colour(&self, s: &FieldSamples) -> Result<Tensor> {
+        let x = Tensor::cat(&[&s.geometry, &s.view_sh], 1)?;
+        Ok(candle_nn::ops::sigmoid(&self.colour_net.forward(&x)?)?)
+    }
+
+    /// Refreshes the occupancy grid from the current density.
+    pub fn update_occupancy(
+        &mut self,
+        rng: &mut Rng,
+        cells: usize,
+        sigma_threshold: f32,
+    ) -> Result<()> {
+        let mut grid = std::mem::replace(&mut self.occupancy, OccupancyGrid::new(1, self.aabb));
+        let res = grid.update(
+            |p| self.density_values(p),
+            rng,
+            cells,
+            0.95,
+            sigma_threshold,
+        );
+        self.occupancy = grid;
+        res
+    }
+
+    /// All tensors that define the field, occupancy included (for checkpoints and outputs).
+    pub fn tensors(&self) -> Result<Vec<(String, Tensor)>> {
+        let mut t: Vec<(String, Tensor)> = self
+            .vars()
+            .into_iter()
+            .map(|(n, v)| (n, v.as_tensor().clone()))
+            .collect();
+        let occ = Tensor::from_slice(
+            &self.occupancy.density,
+            self.occupancy.density.len(),
+            &Device::Cpu,
+        )?;
+        t.push(("occupancy.density".to_string(), occ));
+        Ok(t)
+    }
+
+    /// Restores tensors written by [`RadianceField::tensors`].
+    pub fn load_tensors(
+        &mut self,
+        tensors: &HashMap<String, Tensor>,
+        source: &Path,
+        sigma_threshold: f32,
+    ) -> Result<()> {
+        load_vars(&self.vars(), tensors, source)?;
+        let occ = tensors
+            .get("occupancy.density")
+            .ok_or_else(|| EngineError::artifact(source, "tensor `occupancy.density` missing"))?;
+        let density: Vec<f32> = occ.to_vec1()?;
+        if density.len() != self.config.occupancy_resolution.pow(3) {
+            return Err(EngineError::artifact(
+                source,
+                "occupancy grid size does not match the field config",
+            ));
+        }
+        self.occupancy = OccupancyGrid::from_density(
+            self.config.occupancy_resolution,
+            self.aabb,
+            density,
+            sigma_threshold,
+        );
+        Ok(())
+    }
+}

@@ -1,0 +1,70 @@
+//! The trained field as an artifact: `field.safetensors` (weights and occupancy) plus
+//! `field.json` (architecture, bounds, sampling, cameras, metrics). The JSON is written last,
+//! so a folder with `field.json` holds a complete field.
+
+use std::path::Path;
+
+use candle_core::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::camera::{Camera, Ndc};
+use crate::checkpoint::write_atomic;
+use crate::field::radiance::{FieldConfig, RadianceField};
+use crate::render::march::RayBatch;
+use crate::render::SamplingConfig;
+use crate::rng::Rng;
+use crate::scene::Aabb;
+use crate::{EngineError, Result};
+
+/// Everything besides the weights that later stages need to use a field.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FieldMeta {
+    pub config: FieldConfig,
+    pub sampling: SamplingConfig,
+    pub aabb: Aabb,
+    pub near: f32,
+    pub far: f32,
+    pub ndc: Option<Ndc>,
+    pub background: [f32; 3],
+    pub sigma_threshold: f32,
+    /// Training cameras, in dataset order (the interpolated path follows them).
+    pub train_cameras: Vec<Camera>,
+    pub test_cameras: Vec<Camera>,
+    /// Training steps the field was trained for.
+    pub steps: u64,
+}
+
+impl FieldMeta {
+    /// Rays of every pixel of `camera` in this field's space.
+    pub fn camera_rays(&self, camera: &Camera) -> RayBatch {
+        RayBatch::for_camera(camera, self.ndc.as_ref(), self.near, self.far)
+    }
+}
+
+/// Writes a field into `dir`.
+pub fn save(dir: &Path, field: &RadianceField, meta: &FieldMeta) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| EngineError::io(dir, e))?;
+    let weights = dir.join("field.safetensors");
+    let tmp = dir.join(".field.safetensors.tmp");
+    let tensors: std::collections::HashMap<_, _> = field.tensors()?.into_iter().collect();
+    candle_core::safetensors::save(&tensors, &tmp)?;
+    std::fs::rename(&tmp, &weights).map_err(|e| EngineError::io(&weights, e))?;
+    let json =
+        serde_json::to_vec_pretty(meta).map_err(|e| EngineError::artifact(dir, e.to_string()))?;
+    write_atomic(&dir.join("field.json"), &json)
+}
+
+/// Reads a field written by [`save`].
+pub fn load(dir: &Path, device: &Device) -> Result<(RadianceField, FieldMeta)> {
+    let json_path = dir.join("field.json");
+    let bytes = std::fs::read(&json_path).map_err(|e| EngineError::io(&json_path, e))?;
+    let meta: FieldMeta = serde_json::from_slice(&bytes).map_err(|e| {
+        EngineError::artifact(&json_path, format!("unreadable field metadata: {e}"))
+    })?;
+    let weights = dir.join("field.safetensors");
+    let tensors = candle_core::safetensors::load(&weights, device)
+        .map_err(|e| EngineError::artifact(&weights, format!("unreadable field weights: {e}")))?;
+    let mut field = RadianceField::new(meta.config, meta.aabb, &mut Rng::new(0), device)?;
+    field.load_tensors(&tensors, &weights, meta.sigma_threshold)?;
+    Ok((field, meta))
+}

@@ -1,0 +1,65 @@
+//! Small helpers between f32 pixel buffers and image files: saving RGB previews atomically,
+//! colour-mapping depth, and loading style/content images as linear [0, 1] RGB.
+
+use std::path::Path;
+
+use image::{Rgb, Rgb32FImage, RgbImage};
+
+use crate::{EngineError, Result};
+
+/// Quantises interleaved RGB in [0, 1] to 8-bit.
+pub fn to_rgb8(width: u32, height: u32, rgb: &[f32]) -> RgbImage {
+    let bytes = rgb
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+        .collect();
+    RgbImage::from_raw(width, height, bytes).expect("buffer length matches the image size")
+}
+
+/// Saves interleaved RGB in [0, 1] as a PNG, atomically (temporary file, then rename).
+pub fn save_rgb_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()> {
+    save_png(path, &to_rgb8(width, height, rgb))
+}
+
+/// Saves an 8-bit RGB image as a PNG atomically.
+pub fn save_png(path: &Path, img: &RgbImage) -> Result<()> {
+    let mut bytes = Vec::new();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| EngineError::artifact(path, format!("PNG encoding failed: {e}")))?;
+    crate::checkpoint::write_atomic(path, &bytes)
+}
+
+/// Maps depth to a perceptual-ish colour ramp between `near` and `far` (0 depth → black).
+pub fn depth_preview(width: u32, height: u32, depth: &[f32], near: f32, far: f32) -> RgbImage {
+    let mut img = RgbImage::new(width, height);
+    for (p, &d) in img.pixels_mut().zip(depth) {
+        if d <= 0.0 || !d.is_finite() {
+            continue;
+        }
+        let t = ((d - near) / (far - near).max(1e-6)).clamp(0.0, 1.0);
+        // Warm (near) to cool (far).
+        let r = 1.0 - t;
+        let g = 1.0 - (2.0 * t - 1.0).abs();
+        let b = t;
+        *p = Rgb([
+            (r * 255.0) as u8,
+            (g * 200.0 + 55.0 * (1.0 - t)) as u8,
+            (b * 255.0) as u8,
+        ]);
+    }
+    img
+}
+
+/// Loads any image the `image` crate decodes as RGB in [0, 1].
+pub fn load_rgb(path: &Path) -> Result<Rgb32FImage> {
+    let img = image::ImageReader::open(path)
+        .map_err(|e| EngineError::io(path, e))?
+        .with_guessed_format()
+        .map_err(|e| EngineError::io(path, e))?
+        .decode()
+        .map_err(|e| EngineError::dataset(path, "image", format!("cannot decode image: {e}")))?;
+    Ok(img.into_rgb32f())
+}

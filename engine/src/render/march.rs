@@ -1,0 +1,307 @@
+//! Ray marching: fixed-size steps along each ray inside the scene box, keeping only samples in
+//! occupied cells, packed ray after ray. Also converts sample distances into z-depth, for
+//! world-space rays and for NDC rays of forward-facing scenes.
+
+use glam::Vec3;
+
+use crate::camera::{Camera, Ndc, Ray};
+use crate::field::occupancy::OccupancyGrid;
+use crate::render::composite::PackedRays;
+use crate::rng::Rng;
+
+/// How a distance `t` along a field-space ray maps to camera z-depth in world units.
+#[derive(Debug, Clone, Copy)]
+pub enum DepthModel {
+    /// World-space ray with unit direction: z = t · z_per_t.
+    Linear { z_per_t: f32 },
+    /// NDC ray: NDC z → world z of the shared frame → distance along the original world ray
+    /// (origin z `oz`, unit direction z `dz`) → z-depth.
+    Ndc {
+        ndc_oz: f32,
+        ndc_dz: f32,
+        oz: f32,
+        dz: f32,
+        z_per_t: f32,
+        near: f32,
+    },
+}
+
+impl DepthModel {
+    #[inline]
+    pub fn depth(&self, t: f32) -> f32 {
+        match *self {
+            DepthModel::Linear { z_per_t } => t * z_per_t,
+            DepthModel::Ndc {
+                ndc_oz,
+                ndc_dz,
+                oz,
+                dz,
+                z_per_t,
+                near,
+            } => {
+                let z_ndc = (ndc_oz + t * ndc_dz).min(1.0 - 1e-6);
+                let world_z = -2.0 * near / (1.0 - z_ndc);
+                ((world_z - oz) / dz) * z_per_t
+            }
+        }
+    }
+}
+
+/// Rays in field space.
+#[derive(Debug, Clone, Default)]
+pub struct RayBatch {
+    pub origins: Vec<Vec3>,
+    pub dirs: Vec<Vec3>,
+    /// Unit world-space direction per ray (for the view-dependent colour).
+    pub view_dirs: Vec<Vec3>,
+    pub depth: Vec<DepthModel>,
+    pub near: f32,
+    pub far: f32,
+}
+
+impl RayBatch {
+    pub fn len(&self) -> usize {
+        self.origins.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.origins.is_empty()
+    }
+
+    /// Appends a world ray, converting it to NDC when the scene is forward-facing.
+    pub fn push(&mut self, ray: &Ray, ndc: Option<&Ndc>) {
+        match ndc {
+            None => {
+                self.origins.push(ray.origin);
+                self.dirs.push(ray.dir);
+                self.depth.push(DepthModel::Linear {
+                    z_per_t: ray.z_per_t,
+                });
+            }
+            Some(n) => {
+                let (o, d) = n.ray(ray);
+                self.origins.push(o);
+                self.dirs.push(d);
+                self.depth.push(DepthModel::Ndc {
+                    ndc_oz: o.z,
+                    ndc_dz: d.z,
+                    oz: ray.origin.z,
+                    dz: ray.dir.z,
+                    z_per_t: ray.z_per_t,
+                    near: n.near,
+                });
+            }
+        }
+        self.view_dirs.push(ray.dir);
+    }
+
+    /// One ray per pixel of `camera`, row-major.
+    pub fn for_camera(camera: &Camera, ndc: Option<&Ndc>, near: f32, far: f32) -> RayBatch {
+        let k = camera.intrinsics;
+        let mut rays = RayBatch {
+            near,
+            far,
+            ..Default::default()
+        };
+        for y in 0..k.height {
+            for x in 0..k.width {
+                rays.push(&camera.pixel_ray(x, y), ndc);
+            }
+        }
+        rays
+    }
+
+    /// Appends all rays of `other`.
+    pub fn extend(&mut self, other: &RayBatch) {
+        self.origins.extend_from_slice(&other.origins);
+        self.dirs.extend_from_slice(&other.dirs);
+        self.view_dirs.extend_from_slice(&other.view_dirs);
+        self.depth.extend_from_slice(&other.depth);
+    }
+
+    /// The rays with indices `idx`.
+    pub fn select(&self, idx: &[usize]) -> RayBatch {
+        RayBatch {
+            origins: idx.iter().map(|&i| self.origins[i]).collect(),
+            dirs: idx.iter().map(|&i| self.dirs[i]).collect(),
+            view_dirs: idx.iter().map(|&i| self.view_dirs[i]).collect(),
+            depth: idx.iter().map(|&i| self.depth[i]).collect(),
+            near: self.near,
+            far: self.far,
+        }
+    }
+}
+
+/// Packed samples of a batch of rays.
+#[derive(Debug, Clone, Default)]
+pub struct Samples {
+    /// Field-space positions, 3 per sample.
+    pub positions: Vec<f32>,
+    /// Ray index of each sample.
+    pub ray: Vec<u32>,
+    pub packed: PackedRays,
+}
+
+impl Samples {
+    /// Keeps the samples for which `keep` is true, preserving order and ray grouping.
+    pub fn filter(&self, keep: &[bool]) -> Samples {
+        let mut out = Samples {
+            packed: PackedRays {
+                offsets: vec![0],
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        for w in self.packed.offsets.windows(2) {
+            for k in w[0] as usize..w[1] as usize {
+                if keep[k] {
+                    out.positions
+                        .extend_from_slice(&self.positions[3 * k..3 * k + 3]);
+                    out.ray.push(self.ray[k]);
+                    out.packed.deltas.push(self.packed.deltas[k]);
+                    out.packed.depths.push(self.packed.depths[k]);
+                }
+            }
+            out.packed.offsets.push(out.ray.len() as u32);
+        }
+        out
+    }
+}
+
+/// Marches every ray with step `step` from max(near, box entry) to min(far, box exit), keeping
+/// at most `max_samples` samples per ray in occupied cells. With `jitter`, each ray's first
+/// sample is offset by a random fraction of a step (training); without, samples sit at the
+/// step centres (deterministic rendering).
+pub fn march(
+    rays: &RayBatch,
+    grid: &OccupancyGrid,
+    step: f32,
+    max_samples: usize,
+    mut jitter: Option<&mut Rng>,
+) -> Samples {
+    let mut out = Samples {
+        packed: PackedRays {
+            offsets: Vec::with_capacity(rays.len() + 1),
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    out.packed.offsets.push(0);
+    for r in 0..rays.len() {
+        let (o, d) = (rays.origins[r], rays.dirs[r]);
+        let offset = jitter.as_mut().map_or(0.5, |rng| rng.uniform());
+        if let Some((t0, t1)) = grid.aabb.intersect(o, d) {
+            let (t0, t1) = (t0.max(rays.near), t1.min(rays.far));
+            let mut t = t0 + offset * step;
+            let mut count = 0;
+            while t < t1 && count < max_samples {
+                let p = o + t * d;
+                if grid.is_occupied(p) {
+                    out.positions.extend_from_slice(&[p.x, p.y, p.z]);
+                    out.ray.push(r as u32);
+                    out.packed.deltas.push(step * d.length());
+                    out.packed.depths.push(rays.depth[r].depth(t));
+                    count += 1;
+                }
+                t += step;
+            }
+        }
+        out.packed.offsets.push(out.ray.len() as u32);
+    }
+    out
+}
+
+/// Marks samples after which the ray's transmittance has fallen below `eps` (given σ per
+/// sample): they cannot change the rendered colour noticeably, so training skips them.
+pub fn early_stop_mask(samples: &Samples, sigma: &[f32], eps: f32) -> Vec<bool> {
+    let mut keep = vec![false; sigma.len()];
+    for w in samples.packed.offsets.windows(2) {
+        let mut trans = 1.0f32;
+        for k in w[0] as usize..w[1] as usize {
+            if trans < eps {
+                break;
+            }
+            keep[k] = true;
+            trans *= (-sigma[k] * samples.packed.deltas[k]).exp();
+        }
+    }
+    keep
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Camera, Intrinsics};
+    use crate::scene::Aabb;
+
+    #[test]
+    fn samples_stay_in_box_and_occupied_cells() {
+        let aabb = Aabb {
+            min: Vec3::splat(-1.0),
+            max: Vec3::splat(1.0),
+        };
+        let mut grid = OccupancyGrid::new(8, aabb);
+        // Only the cells with x > 0 are occupied.
+        grid.update(
+            |p| {
+                Ok(p.chunks_exact(3)
+                    .map(|p| if p[0] > 0.0 { 100.0 } else { 0.0 })
+                    .collect())
+            },
+            &mut Rng::new(1),
+            usize::MAX,
+            0.95,
+            1.0,
+        )
+        .unwrap();
+        let k = Intrinsics {
+            fx: 20.0,
+            fy: 20.0,
+            cx: 8.0,
+            cy: 8.0,
+            width: 16,
+            height: 16,
+        };
+        let cam = Camera::look_at(k, Vec3::new(0.3, 0.2, 4.0), Vec3::ZERO, Vec3::Y);
+        let mut rays = RayBatch {
+            near: 0.0,
+            far: 10.0,
+            ..Default::default()
+        };
+        for y in 0..16 {
+            for x in 0..16 {
+                rays.push(&cam.pixel_ray(x, y), None);
+            }
+        }
+        let s = march(&rays, &grid, 0.05, 1000, None);
+        assert!(!s.ray.is_empty());
+        for p in s.positions.chunks_exact(3) {
+            assert!(
+                p[0] > -1e-6 && p.iter().all(|v| v.abs() <= 1.0 + 1e-5),
+                "{p:?}"
+            );
+        }
+        // Depth of a sample equals its camera z-depth.
+        let k0 = 0;
+        let p = Vec3::from_slice(&s.positions[0..3]);
+        let (_, _, z) = cam.project(p);
+        assert!((s.packed.depths[k0] - z).abs() < 1e-4);
+    }
+
+    #[test]
+    fn early_stop_keeps_samples_until_opaque() {
+        let s = Samples {
+            positions: vec![0.0; 12],
+            ray: vec![0; 4],
+            packed: PackedRays {
+                offsets: vec![0, 4],
+                deltas: vec![1.0; 4],
+                depths: vec![0.0; 4],
+            },
+        };
+        assert_eq!(
+            early_stop_mask(&s, &[0.0, 20.0, 1.0, 1.0], 1e-4),
+            vec![true, true, false, false]
+        );
+    }
+}

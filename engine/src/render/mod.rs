@@ -1,0 +1,129 @@
+//! Rendering a radiance field: ray marching through the occupancy grid, pruning samples behind
+//! opaque surfaces, evaluating the field, compositing, and whole images in chunks.
+
+pub mod composite;
+pub mod march;
+
+use std::sync::Arc;
+
+use candle_core::Tensor;
+use serde::{Deserialize, Serialize};
+
+use crate::field::radiance::{FieldSamples, RadianceField};
+use crate::render::composite::{composite, split_with_background};
+use crate::render::march::{early_stop_mask, march, RayBatch};
+use crate::rng::Rng;
+use crate::Result;
+
+/// Sampling settings shared by training and rendering.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SamplingConfig {
+    /// Steps across the scene box's diagonal (world scenes) or across the NDC depth range.
+    pub steps_per_diagonal: usize,
+    pub max_samples_per_ray: usize,
+    /// Samples after the transmittance falls below this are skipped.
+    pub early_stop_eps: f32,
+}
+
+/// Rendered rays.
+pub struct RenderOutput {
+    /// Colour over the background [R, 3].
+    pub rgb: Tensor,
+    /// Expected z-depth [R] (world units; weighted by opacity, so divide by it for a surface
+    /// depth).
+    pub depth: Tensor,
+    /// Accumulated opacity [R].
+    pub opacity: Tensor,
+    /// Samples evaluated with gradients.
+    pub num_samples: usize,
+}
+
+/// The colour of evaluated samples: the field's own colour head, or a style module.
+pub type ColourFn<'a> = dyn Fn(&FieldSamples) -> Result<Tensor> + 'a;
+
+/// Step length for a scene box (or the NDC range).
+pub fn step_size(field: &RadianceField, rays: &RayBatch, cfg: &SamplingConfig) -> f32 {
+    let span = if rays
+        .depth
+        .first()
+        .is_some_and(|d| matches!(d, march::DepthModel::Ndc { .. }))
+    {
+        rays.far - rays.near
+    } else {
+        field.aabb.size().length()
+    };
+    span / cfg.steps_per_diagonal as f32
+}
+
+/// Renders `rays` through `field` with colours from `colour`. With `rng`, sample positions are
+/// jittered (training).
+pub fn render_rays(
+    field: &RadianceField,
+    rays: &RayBatch,
+    cfg: &SamplingConfig,
+    background: [f32; 3],
+    colour: &ColourFn,
+    rng: Option<&mut Rng>,
+) -> Result<RenderOutput> {
+    let step = step_size(field, rays, cfg);
+    let marched = march(rays, &field.occupancy, step, cfg.max_samples_per_ray, rng);
+    // A cheap gradient-free density pass finds where each ray becomes opaque.
+    let sigma = field.density_values(&marched.positions)?;
+    let samples = marched.filter(&early_stop_mask(&marched, &sigma, cfg.early_stop_eps));
+    let packed = Arc::new(samples.packed.clone());
+    let dev = field.device();
+    let out = if samples.ray.is_empty() {
+        Tensor::zeros((rays.len(), 5), candle_core::DType::F32, dev)?
+    } else {
+        let evaluated = field.samples(&samples, &rays.view_dirs)?;
+        let rgb = colour(&evaluated)?;
+        composite(&evaluated.sigma, &rgb, &packed)?
+    };
+    let (rgb, depth, opacity) = split_with_background(&out, background)?;
+    Ok(RenderOutput {
+        rgb,
+        depth,
+        opacity,
+        num_samples: samples.ray.len(),
+    })
+}
+
+/// A rendered image: interleaved RGB, z-depth (divided by opacity: the surface depth) and
+/// opacity, row-major.
+pub struct ImageOutput {
+    pub rgb: Vec<f32>,
+    pub depth: Vec<f32>,
+    pub opacity: Vec<f32>,
+}
+
+/// Renders all `rays` in chunks without gradients (e.g. a whole image).
+pub fn render_image(
+    field: &RadianceField,
+    rays: &RayBatch,
+    cfg: &SamplingConfig,
+    background: [f32; 3],
+    colour: &ColourFn,
+    chunk: usize,
+) -> Result<ImageOutput> {
+    let mut img = ImageOutput {
+        rgb: Vec::with_capacity(rays.len() * 3),
+        depth: Vec::with_capacity(rays.len()),
+        opacity: Vec::with_capacity(rays.len()),
+    };
+    let idx: Vec<usize> = (0..rays.len()).collect();
+    for part in idx.chunks(chunk.max(1)) {
+        let out = render_rays(field, &rays.select(part), cfg, background, colour, None)?;
+        img.rgb
+            .extend(out.rgb.detach().flatten_all()?.to_vec1::<f32>()?);
+        let opacity: Vec<f32> = out.opacity.detach().to_vec1()?;
+        let depth: Vec<f32> = out.depth.detach().to_vec1()?;
+        img.depth.extend(
+            depth
+                .iter()
+                .zip(&opacity)
+                .map(|(d, o)| if *o > 1e-3 { d / o } else { 0.0 }),
+        );
+        img.opacity.extend(opacity);
+    }
+    Ok(img)
+}

@@ -1,0 +1,95 @@
+//! Decoding dataset images and depth maps, compositing alpha on the background, and
+//! resizing both to the camera's (downscaled) intrinsics.
+
+use std::path::Path;
+
+use image::{DynamicImage, Rgb, Rgb32FImage};
+
+use crate::{EngineError, Result};
+
+/// Where an image was named, for messages: the describing file and its field.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Origin<'a> {
+    pub file: &'a Path,
+    pub field: &'a str,
+}
+
+impl Origin<'_> {
+    pub fn err(&self, reason: impl Into<String>) -> EngineError {
+        EngineError::dataset(self.file, self.field, reason)
+    }
+}
+
+fn decode(path: &Path, origin: Origin) -> Result<DynamicImage> {
+    image::ImageReader::open(path)
+        .and_then(|r| r.with_guessed_format())
+        .map_err(|e| origin.err(format!("cannot open {}: {e}", path.display())))?
+        .decode()
+        .map_err(|e| origin.err(format!("cannot decode {}: {e}", path.display())))
+}
+
+/// Reads an image as RGB in [0, 1] (values as stored, no gamma decoding), compositing any
+/// alpha channel on `background`.
+pub(crate) fn read_rgb(path: &Path, origin: Origin, background: [f32; 3]) -> Result<Rgb32FImage> {
+    let img = decode(path, origin)?;
+    if !img.color().has_alpha() {
+        return Ok(img.into_rgb32f());
+    }
+    let rgba = img.into_rgba32f();
+    let (w, h) = rgba.dimensions();
+    Ok(Rgb32FImage::from_fn(w, h, |x, y| {
+        let [r, g, b, a] = rgba.get_pixel(x, y).0;
+        let mix = |c: f32, bg: f32| c * a + bg * (1.0 - a);
+        Rgb([
+            mix(r, background[0]),
+            mix(g, background[1]),
+            mix(b, background[2]),
+        ])
+    }))
+}
+
+/// Reads a 16-bit grayscale depth PNG as depth in world units (`raw × scale`; 0 = unknown).
+pub(crate) fn read_depth(path: &Path, origin: Origin, scale: f32) -> Result<(u32, u32, Vec<f32>)> {
+    match decode(path, origin)? {
+        DynamicImage::ImageLuma16(img) => {
+            let (w, h) = img.dimensions();
+            Ok((
+                w,
+                h,
+                img.into_raw()
+                    .into_iter()
+                    .map(|d| d as f32 * scale)
+                    .collect(),
+            ))
+        }
+        other => Err(origin.err(format!(
+            "{}: expected a 16-bit grayscale depth PNG, found {:?}",
+            path.display(),
+            other.color()
+        ))),
+    }
+}
+
+/// Resizes an image to `width`×`height` (area-aware triangle filter when shrinking).
+pub(crate) fn resize_rgb(img: &Rgb32FImage, width: u32, height: u32) -> Rgb32FImage {
+    if img.dimensions() == (width, height) {
+        return img.clone();
+    }
+    image::imageops::resize(img, width, height, image::imageops::FilterType::Triangle)
+}
+
+/// Resizes a depth map by nearest sampling, so that no depth is invented between surfaces.
+pub(crate) fn resize_depth(depth: &[f32], w: u32, h: u32, width: u32, height: u32) -> Vec<f32> {
+    if (w, h) == (width, height) {
+        return depth.to_vec();
+    }
+    let mut out = Vec::with_capacity((width * height) as usize);
+    for y in 0..height {
+        let sy = (((y as f32 + 0.5) * h as f32 / height as f32) as u32).min(h - 1);
+        for x in 0..width {
+            let sx = (((x as f32 + 0.5) * w as f32 / width as f32) as u32).min(w - 1);
+            out.push(depth[(sy * w + sx) as usize]);
+        }
+    }
+    out
+}

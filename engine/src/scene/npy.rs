@@ -1,0 +1,200 @@
+//! A minimal reader and writer for NumPy `.npy` files holding a 2-D little-endian float
+//! matrix in C order, which is what LLFF's `poses_bounds.npy` is.
+//!
+//! Format: the magic `\x93NUMPY`, a version byte pair, the header length (u16 in version 1,
+//! u32 in versions 2 and 3), an ASCII Python dict literal such as
+//! `{'descr': '<f8', 'fortran_order': False, 'shape': (20, 17), }`, then the raw data.
+
+use std::path::Path;
+
+use crate::{EngineError, Result};
+
+const MAGIC: &[u8] = b"\x93NUMPY";
+
+/// A row-major matrix of f64 values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Matrix {
+    pub rows: usize,
+    pub cols: usize,
+    pub data: Vec<f64>,
+}
+
+impl Matrix {
+    pub fn row(&self, r: usize) -> &[f64] {
+        &self.data[r * self.cols..(r + 1) * self.cols]
+    }
+}
+
+/// Reads a 2-D `<f8` or `<f4` array.
+pub fn read_matrix(path: &Path) -> Result<Matrix> {
+    let bytes = std::fs::read(path).map_err(|e| EngineError::io(path, e))?;
+    let err = |field: &str, reason: String| EngineError::dataset(path, field, reason);
+    if !bytes.starts_with(MAGIC) || bytes.len() < 10 {
+        return Err(err("header", "not a NumPy .npy file (bad magic)".into()));
+    }
+    let (header_len, header_start) = match bytes[6] {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 if bytes.len() >= 12 => (
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+            12,
+        ),
+        v => return Err(err("header", format!("unsupported .npy version {v}"))),
+    };
+    let data_start = header_start + header_len;
+    let header = bytes
+        .get(header_start..data_start)
+        .and_then(|h| std::str::from_utf8(h).ok())
+        .ok_or_else(|| err("header", "truncated or not text".into()))?;
+
+    let descr = dict_value(header, "descr")
+        .and_then(quoted)
+        .ok_or_else(|| err("descr", format!("missing in header {header:?}")))?;
+    let item = match descr {
+        "<f8" => 8,
+        "<f4" => 4,
+        other => {
+            return Err(err(
+                "descr",
+                format!("unsupported dtype `{other}`: expected little-endian float64 `<f8` or float32 `<f4`"),
+            ))
+        }
+    };
+    match dict_value(header, "fortran_order") {
+        Some(v) if v.starts_with("False") => {}
+        Some(v) if v.starts_with("True") => {
+            return Err(err(
+                "fortran_order",
+                "Fortran-ordered arrays are not supported".into(),
+            ))
+        }
+        _ => {
+            return Err(err(
+                "fortran_order",
+                format!("missing in header {header:?}"),
+            ))
+        }
+    }
+    let shape = dict_value(header, "shape").and_then(tuple).ok_or_else(|| {
+        err(
+            "shape",
+            format!("missing or malformed in header {header:?}"),
+        )
+    })?;
+    let [rows, cols] = shape[..] else {
+        return Err(err(
+            "shape",
+            format!("expected a 2-D array, found shape {shape:?}"),
+        ));
+    };
+    let expected = rows
+        .checked_mul(cols)
+        .and_then(|n| n.checked_mul(item))
+        .ok_or_else(|| err("shape", format!("shape {shape:?} is too large")))?;
+    let raw = &bytes[data_start.min(bytes.len())..];
+    if raw.len() != expected {
+        return Err(err(
+            "data",
+            format!(
+                "shape {shape:?} needs {expected} bytes of data, the file has {}",
+                raw.len()
+            ),
+        ));
+    }
+    let data = if item == 8 {
+        raw.chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("8-byte chunk")))
+            .collect()
+    } else {
+        raw.chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4-byte chunk")) as f64)
+            .collect()
+    };
+    Ok(Matrix { rows, cols, data })
+}
+
+/// Writes a 2-D `<f8` array (version 1.0 header padded to 64 bytes).
+pub fn write_matrix(path: &Path, m: &Matrix) -> Result<()> {
+    assert_eq!(
+        m.data.len(),
+        m.rows * m.cols,
+        "matrix data matches its shape"
+    );
+    let mut header = format!(
+        "{{'descr': '<f8', 'fortran_order': False, 'shape': ({}, {}), }}",
+        m.rows, m.cols
+    );
+    while !(MAGIC.len() + 4 + header.len() + 1).is_multiple_of(64) {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut bytes = MAGIC.to_vec();
+    bytes.extend_from_slice(&[1, 0]);
+    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    for x in &m.data {
+        bytes.extend_from_slice(&x.to_le_bytes());
+    }
+    std::fs::write(path, bytes).map_err(|e| EngineError::io(path, e))
+}
+
+/// The text following `'key':` in a Python dict literal.
+fn dict_value<'h>(header: &'h str, key: &str) -> Option<&'h str> {
+    let at = header.find(&format!("'{key}'"))? + key.len() + 2;
+    header[at..]
+        .trim_start()
+        .strip_prefix(':')
+        .map(str::trim_start)
+}
+
+/// The contents of a leading '...' string.
+fn quoted(s: &str) -> Option<&str> {
+    let s = s.strip_prefix('\'')?;
+    Some(&s[..s.find('\'')?])
+}
+
+/// The integers of a leading (a, b, ...) tuple.
+fn tuple(s: &str) -> Option<Vec<usize>> {
+    let s = s.strip_prefix('(')?;
+    s[..s.find(')')?]
+        .split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+        .map(|t| t.trim_end_matches('L').parse().ok())
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_and_header_alignment() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.npy");
+        let m = Matrix {
+            rows: 2,
+            cols: 3,
+            data: vec![1.0, -2.5, 3.0, 4.0, 5.0, 1e-9],
+        };
+        write_matrix(&path, &m).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!((bytes.len() - 6 * 8) % 64, 0);
+        assert_eq!(read_matrix(&path).unwrap(), m);
+    }
+
+    #[test]
+    fn reads_float32_arrays() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.npy");
+        let header = "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 2), }\n";
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&[1, 0]);
+        bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        bytes.extend_from_slice(header.as_bytes());
+        bytes.extend_from_slice(&1.5f32.to_le_bytes());
+        bytes.extend_from_slice(&(-2.0f32).to_le_bytes());
+        std::fs::write(&path, bytes).unwrap();
+        let m = read_matrix(&path).unwrap();
+        assert_eq!((m.rows, m.cols, m.data), (1, 2, vec![1.5, -2.0]));
+    }
+}

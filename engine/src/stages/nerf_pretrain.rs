@@ -1,0 +1,450 @@
+//! Stage 1, `nerf_pretrain`: fit the radiance field to the training photos, checkpointing as
+//! it goes, then report test PSNR (and depth error when the dataset has ground truth) and
+//! write the field artifact.
+//!
+//! Output folder: `field.safetensors` + `field.json` (see [`crate::field::saved`]),
+//! `metrics.json`, `test/<name>.png` (renders of the test views), `ckpt/` (checkpoints).
+
+use std::path::Path;
+use std::time::Instant;
+
+use candle_core::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::checkpoint::{write_atomic, CheckpointDir};
+use crate::field::hash_grid::HashGridConfig;
+use crate::field::radiance::{FieldConfig, RadianceField};
+use crate::field::saved::{self, FieldMeta};
+use crate::optim::{Adam, AdamConfig, LrSchedule};
+use crate::preset::Preset;
+use crate::render::march::RayBatch;
+use crate::render::{render_image, render_rays, step_size, SamplingConfig};
+use crate::rng::Rng;
+use crate::scene::Scene;
+use crate::stages::{Outcome, Progress, StageControl};
+use crate::{EngineError, Result};
+
+/// Training configuration of the field.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NerfConfig {
+    pub field: FieldConfig,
+    pub sampling: SamplingConfig,
+    pub steps: u64,
+    /// Rays in the first batch and the most rays per batch; the count then adapts so that
+    /// each step evaluates about `samples_per_batch` samples (as in instant-ngp).
+    pub rays_per_batch: usize,
+    pub samples_per_batch: usize,
+    pub lr: f64,
+    pub lr_final_ratio: f64,
+    pub warmup_steps: u64,
+    /// Every cell counts as occupied until this step; then the occupancy grid is refreshed…
+    pub occupancy_warmup: u64,
+    /// …every this many steps…
+    pub occupancy_every: u64,
+    /// …sampling every cell until this step, then a quarter of the cells at random.
+    pub occupancy_full_until: u64,
+    /// A cell is occupied while one step through it would be at least this opaque.
+    pub occupancy_alpha: f32,
+    pub seed: u64,
+    /// Rays per chunk when rendering whole images.
+    pub render_chunk: usize,
+    /// Measure test PSNR every this many steps (0: only at the end); the time spent measuring
+    /// is not counted as training time.
+    pub eval_every: u64,
+}
+
+impl NerfConfig {
+    pub fn preset(preset: Preset) -> Self {
+        let grid = |levels, log2_table_size, base_resolution, max_resolution| HashGridConfig {
+            levels,
+            features_per_level: 2,
+            log2_table_size,
+            base_resolution,
+            max_resolution,
+        };
+        let field = |grid, hidden, occupancy_resolution| FieldConfig {
+            grid,
+            density_hidden: hidden,
+            geometry_features: 15,
+            colour_hidden: hidden,
+            occupancy_resolution,
+            density_bias: -1.5,
+        };
+        let sampling = |steps_per_diagonal, max_samples_per_ray| SamplingConfig {
+            steps_per_diagonal,
+            max_samples_per_ray,
+            early_stop_eps: 1e-4,
+        };
+        let base = |field, sampling, steps, rays_per_batch, samples_per_batch| NerfConfig {
+            field,
+            sampling,
+            steps,
+            rays_per_batch,
+            samples_per_batch,
+            lr: 1e-2,
+            lr_final_ratio: 0.05,
+            warmup_steps: 20,
+            occupancy_warmup: 32,
+            occupancy_every: 16,
+            occupancy_full_until: 256,
+            occupancy_alpha: 0.01,
+            seed: 0,
+            render_chunk: 8192,
+            eval_every: 0,
+        };
+        match preset {
+            Preset::Tiny => base(
+                field(grid(8, 14, 4.0, 64.0), 32, 32),
+                sampling(128, 128),
+                150,
+                1024,
+                1 << 15,
+            ),
+            Preset::Quick => base(
+                field(grid(16, 16, 16.0, 512.0), 64, 64),
+                sampling(384, 512),
+                2000,
+                8192,
+                1 << 17,
+            ),
+            Preset::Standard => base(
+                field(grid(16, 19, 16.0, 1024.0), 64, 128),
+                sampling(512, 1024),
+                10_000,
+                16384,
+                1 << 18,
+            ),
+            Preset::Paper => base(
+                field(grid(16, 19, 16.0, 2048.0), 64, 128),
+                sampling(1024, 1024),
+                30_000,
+                16384,
+                1 << 18,
+            ),
+        }
+    }
+}
+
+/// What `nerf_pretrain` measured.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NerfReport {
+    pub steps: u64,
+    pub resumed_from: u64,
+    /// Mean PSNR over the test views (dB), `None` without a test split.
+    pub test_psnr: Option<f64>,
+    /// Mean absolute depth error on test pixels with opacity > 0.5 (world units), when the
+    /// dataset has ground-truth depth.
+    pub depth_mae: Option<f64>,
+    /// `depth_mae` divided by the largest side of the scene box.
+    pub depth_mae_relative: Option<f64>,
+    pub train_seconds: f64,
+    /// Field samples evaluated with gradients per second of training.
+    pub samples_per_second: f64,
+    /// Training loss every 10 steps: (step, loss).
+    pub loss_log: Vec<(u64, f32)>,
+    /// Test PSNR during training (`eval_every`): (step, training seconds, PSNR).
+    pub psnr_curve: Vec<(u64, f64, f64)>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct CheckpointMeta {
+    step: u64,
+    rng: Rng,
+    config: NerfConfig,
+    loss_log: Vec<(u64, f32)>,
+    psnr_curve: Vec<(u64, f64, f64)>,
+    train_seconds: f64,
+    samples: u64,
+    batch_rays: usize,
+}
+
+/// All training rays of the scene and their colours.
+fn training_rays(scene: &Scene) -> (RayBatch, Vec<f32>) {
+    let mut rays = RayBatch {
+        near: scene.near,
+        far: scene.far,
+        ..Default::default()
+    };
+    let mut colours = Vec::new();
+    for &i in &scene.train {
+        let frame = &scene.frames[i];
+        rays.extend(&RayBatch::for_camera(
+            &frame.camera,
+            scene.ndc.as_ref(),
+            scene.near,
+            scene.far,
+        ));
+        colours.extend_from_slice(frame.image.as_raw());
+    }
+    (rays, colours)
+}
+
+/// Next batch size: scale the ray count so the evaluated samples approach the target.
+fn adapt_batch(rays: usize, samples: usize, cfg: &NerfConfig) -> usize {
+    let scaled = rays as f64 * cfg.samples_per_batch as f64 / samples.max(1) as f64;
+    // Move halfway (in log space) to damp the noise of one batch.
+    let next = (rays as f64 * scaled).sqrt().round() as usize;
+    next.clamp(256.min(cfg.rays_per_batch), cfg.rays_per_batch)
+}
+
+fn sigma_threshold(field: &RadianceField, rays: &RayBatch, cfg: &NerfConfig) -> f32 {
+    -(1.0 - cfg.occupancy_alpha).ln() / step_size(field, rays, &cfg.sampling)
+}
+
+/// Trains the field on `scene` and writes the artifact into `out`. Resumes from the newest
+/// checkpoint in `out/ckpt` when there is one.
+pub fn run(
+    scene: &Scene,
+    cfg: &NerfConfig,
+    out: &Path,
+    control: &StageControl,
+    device: &Device,
+) -> Result<Outcome<NerfReport>> {
+    if scene.train.is_empty() {
+        return Err(EngineError::dataset(
+            &scene.root,
+            "train",
+            "the training split is empty",
+        ));
+    }
+    let (rays, colours) = training_rays(scene);
+    let mut rng = Rng::new(cfg.seed);
+    let mut field = RadianceField::new(cfg.field, scene.aabb, &mut rng, device)?;
+    let threshold = sigma_threshold(&field, &rays, cfg);
+    let mut adam = Adam::new(
+        field.vars(),
+        AdamConfig {
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-15,
+            weight_decay: 0.0,
+        },
+    )?;
+    let schedule = LrSchedule {
+        lr: cfg.lr,
+        warmup_steps: cfg.warmup_steps,
+        final_ratio: cfg.lr_final_ratio,
+        total_steps: cfg.steps,
+    };
+    let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
+    let mut batch_rays = cfg.rays_per_batch;
+    let mut start = 0;
+    let mut loss_log = Vec::new();
+    let mut psnr_curve = Vec::new();
+    let mut samples_total = 0u64;
+    let mut seconds_before = 0.0;
+    if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
+        let source = ckpt.path().join(format!("step-{:08}.safetensors", c.step));
+        field.load_tensors(&c.tensors, &source, threshold)?;
+        adam.load_state(&c.tensors, c.meta.step)?;
+        rng = c.meta.rng;
+        start = c.meta.step;
+        loss_log = c.meta.loss_log;
+        psnr_curve = c.meta.psnr_curve;
+        samples_total = c.meta.samples;
+        batch_rays = c.meta.batch_rays;
+        seconds_before = c.meta.train_seconds;
+        tracing::info!(step = start, "nerf_pretrain: resuming from checkpoint");
+    }
+    // Training time excludes the time spent on mid-training evaluations.
+    let mut started = Instant::now();
+    let mut last_ckpt = Instant::now();
+    for step in start..cfg.steps {
+        if step >= cfg.occupancy_warmup && step % cfg.occupancy_every == 0 {
+            let cells = if step < cfg.occupancy_full_until {
+                usize::MAX
+            } else {
+                cfg.field.occupancy_resolution.pow(3) / 4
+            };
+            field.update_occupancy(&mut rng, cells, threshold)?;
+        }
+        let idx: Vec<usize> = (0..batch_rays).map(|_| rng.below(rays.len())).collect();
+        let batch = rays.select(&idx);
+        let target: Vec<f32> = idx
+            .iter()
+            .flat_map(|&i| colours[3 * i..3 * i + 3].iter().copied())
+            .collect();
+        let target = candle_core::Tensor::from_vec(target, (idx.len(), 3), device)?;
+        let out = render_rays(
+            &field,
+            &batch,
+            &cfg.sampling,
+            scene.background,
+            &|s| field.colour(s),
+            Some(&mut rng),
+        )?;
+        let loss = (out.rgb - target)?.sqr()?.mean_all()?;
+        let grads = loss.backward()?;
+        adam.step(&grads, schedule.at(step))?;
+        samples_total += out.num_samples as u64;
+        batch_rays = adapt_batch(batch_rays, out.num_samples, cfg);
+        let done = step + 1;
+        if cfg.eval_every > 0 && done % cfg.eval_every == 0 && done < cfg.steps {
+            let seconds = seconds_before + started.elapsed().as_secs_f64();
+            let eval_started = Instant::now();
+            let (psnr, _) = evaluate(scene, &field, &field_meta(scene, cfg, threshold), cfg, None)?;
+            if let Some(psnr) = psnr {
+                tracing::info!(step = done, seconds, psnr, "nerf_pretrain: test PSNR");
+                psnr_curve.push((done, seconds, psnr));
+            }
+            started += eval_started.elapsed();
+        }
+        if done % 10 == 0 || done == cfg.steps {
+            let l = loss.to_scalar::<f32>()?;
+            loss_log.push((done, l));
+            let mut p = Progress {
+                stage: "nerf_pretrain".into(),
+                step: done,
+                total: cfg.steps,
+                loss: Some(l as f64),
+                resumed_from: start,
+                ..Default::default()
+            };
+            p.metrics.insert("psnr".into(), -10.0 * (l as f64).log10());
+            p.metrics.insert("lr".into(), schedule.at(step));
+            p.metrics.insert(
+                "samples_per_ray".into(),
+                out.num_samples as f64 / idx.len() as f64,
+            );
+            p.metrics.insert("rays".into(), idx.len() as f64);
+            p.metrics.insert(
+                "occupied".into(),
+                field.occupancy.occupied_fraction() as f64,
+            );
+            control.report(&p);
+        }
+        let stop = control.should_stop(done);
+        if done < cfg.steps && (stop || control.checkpoint_due(done, last_ckpt)) {
+            let mut tensors = field.tensors()?;
+            tensors.extend(adam.state());
+            let meta = CheckpointMeta {
+                step: done,
+                rng,
+                config: cfg.clone(),
+                loss_log: loss_log.clone(),
+                psnr_curve: psnr_curve.clone(),
+                train_seconds: seconds_before + started.elapsed().as_secs_f64(),
+                samples: samples_total,
+                batch_rays,
+            };
+            ckpt.save(done, &tensors, &meta)?;
+            last_ckpt = Instant::now();
+        }
+        if stop && done < cfg.steps {
+            if control.is_cancelled() {
+                return Err(EngineError::Cancelled);
+            }
+            return Ok(Outcome::Stopped { step: done });
+        }
+    }
+    let train_seconds = seconds_before + started.elapsed().as_secs_f64();
+    let meta = field_meta(scene, cfg, threshold);
+    let (test_psnr, depth) = evaluate(scene, &field, &meta, cfg, Some(&out.join("test")))?;
+    if let Some(psnr) = test_psnr {
+        psnr_curve.push((cfg.steps, train_seconds, psnr));
+    }
+    let extent = scene.aabb.size().max_element() as f64;
+    let report = NerfReport {
+        steps: cfg.steps,
+        resumed_from: start,
+        test_psnr,
+        depth_mae: depth,
+        depth_mae_relative: depth.map(|d| d / extent),
+        train_seconds,
+        samples_per_second: samples_total as f64 / train_seconds.max(1e-9),
+        loss_log,
+        psnr_curve,
+    };
+    saved::save(out, &field, &meta)?;
+    let json = serde_json::to_vec_pretty(&report)
+        .map_err(|e| EngineError::artifact(out, e.to_string()))?;
+    write_atomic(&out.join("metrics.json"), &json)?;
+    control.report(&Progress {
+        stage: "nerf_pretrain".into(),
+        step: cfg.steps,
+        total: cfg.steps,
+        metrics: test_psnr
+            .map(|p| ("test_psnr".to_string(), p))
+            .into_iter()
+            .collect(),
+        resumed_from: start,
+        ..Default::default()
+    });
+    Ok(Outcome::Done(report))
+}
+
+fn field_meta(scene: &Scene, cfg: &NerfConfig, sigma_threshold: f32) -> FieldMeta {
+    FieldMeta {
+        config: cfg.field,
+        sampling: cfg.sampling,
+        aabb: scene.aabb,
+        near: scene.near,
+        far: scene.far,
+        ndc: scene.ndc,
+        background: scene.background,
+        sigma_threshold,
+        train_cameras: scene
+            .train
+            .iter()
+            .map(|&i| scene.frames[i].camera)
+            .collect(),
+        test_cameras: scene.test.iter().map(|&i| scene.frames[i].camera).collect(),
+        steps: cfg.steps,
+    }
+}
+
+/// Renders the test views: mean PSNR and, with ground truth, mean absolute depth error.
+/// With `images`, the renders are saved there as PNGs.
+fn evaluate(
+    scene: &Scene,
+    field: &RadianceField,
+    meta: &FieldMeta,
+    cfg: &NerfConfig,
+    images: Option<&Path>,
+) -> Result<(Option<f64>, Option<f64>)> {
+    let mut psnrs = Vec::new();
+    let (mut depth_err, mut depth_count) = (0.0f64, 0usize);
+    for &i in &scene.test {
+        let frame = &scene.frames[i];
+        let k = frame.camera.intrinsics;
+        let img = render_image(
+            field,
+            &meta.camera_rays(&frame.camera),
+            &cfg.sampling,
+            scene.background,
+            &|s| field.colour(s),
+            cfg.render_chunk,
+        )?;
+        let mse = img
+            .rgb
+            .iter()
+            .zip(frame.image.as_raw())
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum::<f64>()
+            / img.rgb.len() as f64;
+        psnrs.push(-10.0 * mse.max(1e-12).log10());
+        if let Some(gt) = &frame.depth {
+            for ((d, o), g) in img.depth.iter().zip(&img.opacity).zip(gt) {
+                if *o > 0.5 && *g > 0.0 {
+                    depth_err += (d - g).abs() as f64;
+                    depth_count += 1;
+                }
+            }
+        }
+        if let Some(dir) = images {
+            let name = Path::new(&frame.name)
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| format!("{i:04}"));
+            crate::image_io::save_rgb_png(
+                &dir.join(format!("{name}.png")),
+                k.width,
+                k.height,
+                &img.rgb,
+            )?;
+        }
+    }
+    let psnr = (!psnrs.is_empty()).then(|| psnrs.iter().sum::<f64>() / psnrs.len() as f64);
+    let depth = (depth_count > 0).then(|| depth_err / depth_count as f64);
+    Ok((psnr, depth))
+}

@@ -1,0 +1,160 @@
+//! Stage 2, `render_views`: render RGB, expected z-depth and opacity from the trained field at
+//! every training pose and along an interpolated camera path (slerp of rotations, lerp of
+//! centres, through evenly spaced training poses). These views are the training data of the 2D
+//! network and of mutual learning; their depth gives the geometry used for warping.
+
+use std::path::Path;
+
+use candle_core::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Camera;
+use crate::field::saved;
+use crate::preset::Preset;
+use crate::render::render_image;
+use crate::stages::{Outcome, Progress, StageControl};
+use crate::views::{RenderedViews, ViewInfo, ViewKind};
+use crate::{EngineError, Result};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RenderViewsConfig {
+    /// Frames on the interpolated path.
+    pub path_frames: usize,
+    /// Training poses the path passes through (evenly spaced in dataset order, looped).
+    pub path_keyframes: usize,
+    /// Rays per rendering chunk.
+    pub chunk: usize,
+}
+
+impl RenderViewsConfig {
+    pub fn preset(preset: Preset) -> Self {
+        match preset {
+            Preset::Tiny => Self {
+                path_frames: 12,
+                path_keyframes: 4,
+                chunk: 4096,
+            },
+            Preset::Quick => Self {
+                path_frames: 60,
+                path_keyframes: 8,
+                chunk: 8192,
+            },
+            Preset::Standard | Preset::Paper => Self {
+                path_frames: 120,
+                path_keyframes: 12,
+                chunk: 8192,
+            },
+        }
+    }
+}
+
+/// A closed path through `keyframes` evenly spaced cameras of `cameras`, `frames` poses long.
+pub fn interpolated_path(cameras: &[Camera], keyframes: usize, frames: usize) -> Vec<Camera> {
+    if cameras.is_empty() || frames == 0 {
+        return Vec::new();
+    }
+    let keys: Vec<Camera> = (0..keyframes.clamp(1, cameras.len()))
+        .map(|i| cameras[i * cameras.len() / keyframes.clamp(1, cameras.len())])
+        .collect();
+    (0..frames)
+        .map(|f| {
+            let x = f as f32 * keys.len() as f32 / frames as f32;
+            let i = x.floor() as usize;
+            keys[i % keys.len()].interpolate(&keys[(i + 1) % keys.len()], x - i as f32)
+        })
+        .collect()
+}
+
+/// Renders the views of the field in `field_dir` into `out`.
+pub fn run(
+    field_dir: &Path,
+    cfg: &RenderViewsConfig,
+    out: &Path,
+    control: &StageControl,
+    device: &Device,
+) -> Result<Outcome<RenderedViews>> {
+    let (field, meta) = saved::load(field_dir, device)?;
+    let first = meta.train_cameras.first().ok_or_else(|| {
+        EngineError::artifact(
+            field_dir.join("field.json"),
+            "the field has no training cameras",
+        )
+    })?;
+    let (width, height) = (first.intrinsics.width, first.intrinsics.height);
+    let mut views: Vec<ViewInfo> = meta
+        .train_cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| ViewInfo {
+            name: format!("train_{i:04}"),
+            kind: ViewKind::Train { frame: i },
+            camera: *c,
+        })
+        .collect();
+    views.extend(
+        interpolated_path(&meta.train_cameras, cfg.path_keyframes, cfg.path_frames)
+            .into_iter()
+            .enumerate()
+            .map(|(i, c)| ViewInfo {
+                name: format!("path_{i:04}"),
+                kind: ViewKind::Path,
+                camera: c,
+            }),
+    );
+    let mut rendered = RenderedViews {
+        width,
+        height,
+        views: Vec::new(),
+        rgb: Vec::new(),
+        depth: Vec::new(),
+        opacity: Vec::new(),
+    };
+    let total = views.len() as u64;
+    for (i, view) in views.into_iter().enumerate() {
+        if control.is_cancelled() {
+            return Err(EngineError::Cancelled);
+        }
+        // Views of another size than the first would not stack; scale their intrinsics.
+        let mut camera = view.camera;
+        if (camera.intrinsics.width, camera.intrinsics.height) != (width, height) {
+            camera.intrinsics = camera
+                .intrinsics
+                .scaled(width as f32 / camera.intrinsics.width as f32);
+            camera.intrinsics.height = height;
+        }
+        let img = render_image(
+            &field,
+            &meta.camera_rays(&camera),
+            &meta.sampling,
+            meta.background,
+            &|s| field.colour(s),
+            cfg.chunk,
+        )?;
+        rendered.rgb.extend(img.rgb);
+        rendered.depth.extend(img.depth);
+        rendered.opacity.extend(img.opacity);
+        rendered.views.push(ViewInfo { camera, ..view });
+        control.report(&Progress {
+            stage: "render_views".into(),
+            step: i as u64 + 1,
+            total,
+            ..Default::default()
+        });
+    }
+    let (near, far) = depth_range(&rendered);
+    rendered.save(out, near, far)?;
+    Ok(Outcome::Done(rendered))
+}
+
+/// The 2nd and 98th percentiles of the valid depths, for previews.
+fn depth_range(views: &RenderedViews) -> (f32, f32) {
+    let mut d: Vec<f32> = views.depth.iter().copied().filter(|d| *d > 0.0).collect();
+    if d.is_empty() {
+        return (0.0, 1.0);
+    }
+    d.sort_by(f32::total_cmp);
+    (
+        d[d.len() * 2 / 100],
+        d[(d.len() * 98 / 100).min(d.len() - 1)],
+    )
+}

@@ -1,0 +1,281 @@
+//! The trainable decoder: the mirror of the encoder from relu4_1 back to RGB. Each encoder
+//! convolution (in → out) becomes a decoder convolution (out → in) in reverse order, each
+//! encoder max-pool a 2× nearest upsampling, with reflection padding and ReLU everywhere but
+//! after the last convolution — for VGG-19 exactly AdaIN's published decoder, whose
+//! `decoder.pth` loads here.
+//!
+//! Saved as safetensors: `decoder.{k}.weight` `[out, in, 3, 3]` and `decoder.{k}.bias` for
+//! k = 0, 1, … in forward order, with metadata `format` = `stylenerf-adain-decoder/1`, `arch`,
+//! and `encoder` (the encoder's source, to catch pairing a decoder with another encoder).
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor, Var};
+
+use super::arch::VggArch;
+use super::pad::reflection_pad2d;
+use super::resample::upsample_nearest2x;
+use super::st_file;
+use super::weights::{legacy_pickle_error, read_state_dict, take_conv};
+use crate::rng::Rng;
+use crate::{EngineError, Result};
+
+const FORMAT_TAG: &str = "stylenerf-adain-decoder/1";
+
+/// Sequential indices of the convolutions in AdaIN's `decoder.pth` (VGG-19 mirror).
+const ADAIN_DECODER_PTH: [usize; 9] = [1, 5, 8, 11, 14, 18, 21, 25, 28];
+
+/// One decoder convolution's shape and what follows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Step {
+    c_in: usize,
+    c_out: usize,
+    relu: bool,
+    upsample_after: bool,
+}
+
+fn mirror(arch: VggArch) -> Vec<Step> {
+    let convs = arch.convs();
+    convs
+        .iter()
+        .rev()
+        .enumerate()
+        .map(|(k, s)| Step {
+            c_in: s.c_out,
+            c_out: s.c_in,
+            relu: k + 1 < convs.len(),
+            upsample_after: s.pool_before,
+        })
+        .collect()
+}
+
+/// The decoder: trainable convolution weights as [`Var`]s.
+#[derive(Debug, Clone)]
+pub struct Decoder {
+    arch: VggArch,
+    steps: Vec<Step>,
+    /// `(weight [out, in, 3, 3], bias [out])` per step.
+    params: Vec<(Var, Var)>,
+}
+
+impl Decoder {
+    /// A freshly initialised decoder (He-uniform weights, zero biases), seeded.
+    pub fn new(arch: VggArch, seed: u64, device: &Device) -> Result<Self> {
+        let mut rng = Rng::new(seed);
+        let steps = mirror(arch);
+        let params = steps
+            .iter()
+            .map(|s| {
+                let fan_in = s.c_in * 9;
+                let bound = (6.0 / fan_in as f32).sqrt();
+                let w: Vec<f32> = (0..s.c_out * fan_in)
+                    .map(|_| (rng.uniform() * 2.0 - 1.0) * bound)
+                    .collect();
+                let w = Tensor::from_vec(w, (s.c_out, s.c_in, 3, 3), device)?;
+                let b = Tensor::zeros(s.c_out, DType::F32, device)?;
+                Ok((Var::from_tensor(&w)?, Var::from_tensor(&b)?))
+            })
+            .collect::<Result<_>>()?;
+        Ok(Self {
+            arch,
+            steps,
+            params,
+        })
+    }
+
+    pub fn arch(&self) -> VggArch {
+        self.arch
+    }
+
+    /// Decodes relu4_1-shaped features `[B, 512, h, w]` to RGB `[B, 3, 8h, 8w]` (not clamped:
+    /// roughly [0, 1]).
+    pub fn forward(&self, feat: &Tensor) -> candle_core::Result<Tensor> {
+        let mut h = feat.clone();
+        for (s, (w, b)) in self.steps.iter().zip(&self.params) {
+            h = reflection_pad2d(&h, 1)?
+                .conv2d(w.as_tensor(), 0, 1, 1, 1)?
+                .broadcast_add(&b.as_tensor().reshape((1, s.c_out, 1, 1))?)?;
+            if s.relu {
+                h = h.relu()?;
+            }
+            if s.upsample_after {
+                h = upsample_nearest2x(&h)?;
+            }
+        }
+        Ok(h)
+    }
+
+    /// The trainable variables with stable names (`decoder.{k}.weight` / `.bias`).
+    pub fn vars(&self) -> Vec<(String, Var)> {
+        self.params
+            .iter()
+            .enumerate()
+            .flat_map(|(k, (w, b))| {
+                [
+                    (format!("decoder.{k}.weight"), w.clone()),
+                    (format!("decoder.{k}.bias"), b.clone()),
+                ]
+            })
+            .collect()
+    }
+
+    /// The weights as named tensors (for checkpoints).
+    pub fn tensors(&self) -> Vec<(String, Tensor)> {
+        self.vars()
+            .into_iter()
+            .map(|(n, v)| (n, v.as_tensor().clone()))
+            .collect()
+    }
+
+    /// Overwrites the weights from named tensors as produced by [`Self::tensors`].
+    pub fn set_tensors(&self, tensors: &HashMap<String, Tensor>) -> Result<()> {
+        for (name, var) in self.vars() {
+            let t = tensors.get(&name).ok_or_else(|| {
+                EngineError::artifact("decoder", format!("missing tensor `{name}`"))
+            })?;
+            if t.dims() != var.dims() {
+                return Err(EngineError::artifact(
+                    "decoder",
+                    format!(
+                        "tensor `{name}`: expected shape {:?}, found {:?}",
+                        var.dims(),
+                        t.dims()
+                    ),
+                ));
+            }
+            var.set(&t.to_dtype(DType::F32)?.to_device(var.device())?)?;
+        }
+        Ok(())
+    }
+
+    /// Saves the decoder as safetensors; `encoder` names the encoder it was trained with.
+    pub fn save(&self, path: &Path, encoder: &str) -> Result<()> {
+        let meta = [
+            ("format", FORMAT_TAG.to_string()),
+            ("arch", self.arch.name().to_string()),
+            ("encoder", encoder.to_string()),
+        ];
+        st_file::save(path, &self.tensors(), &meta)
+    }
+
+    /// Loads a decoder saved by [`Self::save`] or AdaIN's `decoder.pth` (zip format; VGG-19
+    /// mirror). Returns it with the name of the encoder it was trained with, when recorded.
+    pub fn load(path: &Path, device: &Device) -> Result<(Self, Option<String>)> {
+        let bytes = std::fs::read(path).map_err(|e| EngineError::io(path, e))?;
+        if bytes.starts_with(b"PK\x03\x04") {
+            let sd = read_state_dict(path)?;
+            let dec = Self::new(VggArch::Vgg19, 0, device)?;
+            for ((s, (w, b)), idx) in dec.steps.iter().zip(&dec.params).zip(ADAIN_DECODER_PTH) {
+                let what = format!("decoder conv {idx}");
+                let c = take_conv(
+                    path,
+                    &sd,
+                    &format!("{idx}.weight"),
+                    &format!("{idx}.bias"),
+                    (&what, s.c_out, s.c_in, 3),
+                )?;
+                w.set(&c.weight.to_device(device)?)?;
+                b.set(&c.bias.to_device(device)?)?;
+            }
+            return Ok((dec, Some("AdaIN vgg_normalised (decoder.pth)".into())));
+        }
+        if bytes.first() == Some(&0x80) {
+            return Err(legacy_pickle_error(path));
+        }
+        let meta = st_file::metadata(path, &bytes)?;
+        if meta.get("format").map(String::as_str) != Some(FORMAT_TAG) {
+            return Err(EngineError::artifact(
+                path,
+                format!("not a decoder file: metadata `format` is not {FORMAT_TAG}"),
+            ));
+        }
+        let arch = meta
+            .get("arch")
+            .and_then(|a| VggArch::parse(a))
+            .ok_or_else(|| EngineError::artifact(path, "decoder metadata lacks a valid `arch`"))?;
+        let dec = Self::new(arch, 0, device)?;
+        let tensors = candle_core::safetensors::load_buffer(&bytes, device)?;
+        dec.set_tensors(&tensors)
+            .map_err(|e| EngineError::artifact(path, e.to_string()))?;
+        Ok((dec, meta.get("encoder").cloned()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::style2d::gradcheck;
+
+    #[test]
+    fn vgg19_mirror_is_adains_decoder() {
+        let s = mirror(VggArch::Vgg19);
+        let shapes: Vec<(usize, usize)> = s.iter().map(|s| (s.c_in, s.c_out)).collect();
+        assert_eq!(
+            shapes,
+            vec![
+                (512, 256),
+                (256, 256),
+                (256, 256),
+                (256, 256),
+                (256, 128),
+                (128, 128),
+                (128, 64),
+                (64, 64),
+                (64, 3)
+            ]
+        );
+        let ups: Vec<usize> = s
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.upsample_after)
+            .map(|(i, _)| i)
+            .collect();
+        assert_eq!(ups, vec![0, 4, 6]);
+        assert!(!s.last().unwrap().relu && s[..8].iter().all(|s| s.relu));
+    }
+
+    #[test]
+    fn shapes_save_and_load() {
+        let dec = Decoder::new(VggArch::Vgg16, 1, &Device::Cpu).unwrap();
+        let x = Tensor::rand(0f32, 1.0, (2, 512, 2, 3), &Device::Cpu).unwrap();
+        let y = dec.forward(&x).unwrap();
+        assert_eq!(y.dims(), &[2, 3, 16, 24]);
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("dec.safetensors");
+        dec.save(&p, "enc-x").unwrap();
+        let (back, enc) = Decoder::load(&p, &Device::Cpu).unwrap();
+        assert_eq!(enc.as_deref(), Some("enc-x"));
+        let d = (back.forward(&x).unwrap() - y)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert_eq!(d, 0.0);
+        std::fs::write(&p, b"\x80\x02junk").unwrap();
+        assert!(Decoder::load(&p, &Device::Cpu)
+            .unwrap_err()
+            .to_string()
+            .contains("legacy"));
+    }
+
+    #[test]
+    fn decoder_block_gradient_matches_finite_differences() {
+        // conv → relu → upsample → pad → conv, as composed in `forward`, w.r.t. the input
+        // and (through the same ops) the weights.
+        let w1 = gradcheck::random(&[3, 2, 3, 3], 20);
+        let w2 = gradcheck::random(&[2, 3, 3, 3], 21);
+        gradcheck::check(&gradcheck::random(&[1, 2, 3, 2], 22), |x| {
+            let h = reflection_pad2d(x, 1)?.conv2d(&w1, 0, 1, 1, 1)?.relu()?;
+            reflection_pad2d(&upsample_nearest2x(&h)?, 1)?.conv2d(&w2, 0, 1, 1, 1)
+        });
+        let x = gradcheck::random(&[1, 2, 3, 2], 23);
+        gradcheck::check(&w1, |w| {
+            let h = reflection_pad2d(&x, 1)?.conv2d(w, 0, 1, 1, 1)?.relu()?;
+            reflection_pad2d(&upsample_nearest2x(&h)?, 1)?.conv2d(&w2, 0, 1, 1, 1)
+        });
+    }
+}

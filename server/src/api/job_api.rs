@@ -1,0 +1,581 @@
+//! `JobService`: uploads, job creation (validation, idempotency, input copies), queries,
+//! watching with replay, cancellation, artifact listing and download, and new renders.
+
+use crate::auth::{require, Principal, Role, CLIENT_ROLES};
+use crate::errors::{internal, invalid, invalid_all, Violation};
+use crate::events::read_after;
+use crate::inputs::{receive_upload, resolve_input, InputKind};
+use crate::jobs::{self, NewJob};
+use crate::model::{job_state, job_state_from_pb};
+use crate::state::Shared;
+use crate::storage::check_key;
+use std::pin::Pin;
+use std::sync::Arc;
+use stylenerf_proto::v1 as pb;
+use stylenerf_proto::v1::job_service_server::JobService;
+use tokio::sync::{broadcast, mpsc};
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
+
+/// Longest accepted JSON document in a request field.
+const MAX_JSON_BYTES: usize = 64 << 10;
+
+pub struct JobApi {
+    pub shared: Arc<Shared>,
+}
+
+/// Parses an optional JSON object field (`""` = `{}`).
+fn json_object(
+    field: &str,
+    text: &str,
+    violations: &mut Vec<Violation>,
+) -> serde_json::Map<String, serde_json::Value> {
+    if text.trim().is_empty() {
+        return serde_json::Map::new();
+    }
+    if text.len() > MAX_JSON_BYTES {
+        violations.push(Violation::new(field, "longer than 64 KiB"));
+        return serde_json::Map::new();
+    }
+    match serde_json::from_str::<serde_json::Value>(text) {
+        Ok(serde_json::Value::Object(map)) => map,
+        Ok(_) => {
+            violations.push(Violation::new(field, "must be a JSON object"));
+            serde_json::Map::new()
+        }
+        Err(e) => {
+            violations.push(Violation::new(field, format!("not valid JSON: {e}")));
+            serde_json::Map::new()
+        }
+    }
+}
+
+/// Validates a render specification and returns its part of the task configuration.
+fn render_spec(
+    shared: &Shared,
+    camera_path: Option<&pb::CameraPath>,
+    blend: &[pb::StyleWeight],
+    num_styles: usize,
+    violations: &mut Vec<Violation>,
+) -> serde_json::Map<String, serde_json::Value> {
+    let mut extra = serde_json::Map::new();
+    if let Some(path) = camera_path {
+        if path.kind.len() > 64 {
+            violations.push(Violation::new(
+                "camera_path.kind",
+                "longer than 64 characters",
+            ));
+        }
+        let max = shared.config.limits.max_render_frames;
+        if path.num_frames > max {
+            violations.push(Violation::new(
+                "camera_path.num_frames",
+                format!("at most {max} frames"),
+            ));
+        }
+        if !(path.fps.is_finite() && (0.0..=240.0).contains(&path.fps)) {
+            violations.push(Violation::new("camera_path.fps", "must be within 0..=240"));
+        }
+        let params = json_object("camera_path.params_json", &path.params_json, violations);
+        extra.insert(
+            "camera_path".into(),
+            serde_json::json!({
+                "kind": path.kind,
+                "num_frames": path.num_frames,
+                "fps": path.fps,
+                "params": params,
+            }),
+        );
+    }
+    if !blend.is_empty() {
+        let mut total = 0.0;
+        for (i, w) in blend.iter().enumerate() {
+            if w.style_index as usize >= num_styles {
+                violations.push(Violation::new(
+                    format!("style_blend[{i}].style_index"),
+                    format!("the job has {num_styles} styles"),
+                ));
+            }
+            if !(w.weight.is_finite() && w.weight >= 0.0) {
+                violations.push(Violation::new(
+                    format!("style_blend[{i}].weight"),
+                    "must be a finite non-negative number",
+                ));
+            } else {
+                total += w.weight;
+            }
+        }
+        if total <= 0.0 {
+            violations.push(Violation::new(
+                "style_blend",
+                "the weights must not all be 0",
+            ));
+        }
+        let weights: Vec<serde_json::Value> = blend
+            .iter()
+            .map(|w| serde_json::json!({"style_index": w.style_index, "weight": w.weight / total.max(f64::MIN_POSITIVE)}))
+            .collect();
+        extra.insert("style_blend".into(), weights.into());
+    }
+    extra
+}
+
+impl JobApi {
+    async fn create(
+        &self,
+        caller: &Principal,
+        req: pb::CreateJobRequest,
+    ) -> Result<pb::CreateJobResponse, Status> {
+        let shared = &self.shared;
+        let mut violations = Vec::new();
+        if req.name.chars().count() > 200 {
+            violations.push(Violation::new("name", "longer than 200 characters"));
+        }
+        if req.idempotency_key.len() > 200 {
+            violations.push(Violation::new("idempotency_key", "longer than 200 bytes"));
+        }
+        let preset = if req.preset.is_empty() {
+            "quick".to_string()
+        } else {
+            req.preset.clone()
+        };
+        if !shared.config.presets.contains(&preset) {
+            violations.push(Violation::new(
+                "preset",
+                format!(
+                    "unknown preset {preset:?} (one of: {})",
+                    shared.config.presets.join(", ")
+                ),
+            ));
+        }
+        if req.styles.is_empty() {
+            violations.push(Violation::new(
+                "styles",
+                "at least one style image is needed",
+            ));
+        }
+        if req.styles.len() > shared.config.limits.max_styles {
+            violations.push(Violation::new(
+                "styles",
+                format!("at most {} styles", shared.config.limits.max_styles),
+            ));
+        }
+        let overrides = json_object(
+            "config_overrides_json",
+            &req.config_overrides_json,
+            &mut violations,
+        );
+        let requirements = req.requirements.clone().unwrap_or_default();
+        for (i, label) in requirements.labels.iter().enumerate() {
+            if label.is_empty() || label.len() > 100 {
+                violations.push(Violation::new(
+                    format!("requirements.labels[{i}]"),
+                    "must be 1-100 characters",
+                ));
+            }
+        }
+        let render = render_spec(
+            shared,
+            req.camera_path.as_ref(),
+            &req.style_blend,
+            req.styles.len(),
+            &mut violations,
+        );
+        if !violations.is_empty() {
+            return Err(invalid_all(violations));
+        }
+        let idempotency_key =
+            (!req.idempotency_key.is_empty()).then(|| req.idempotency_key.clone());
+        if let Some(key) = &idempotency_key {
+            if let Some(job) =
+                jobs::find_by_idempotency_key(&shared.db.read, &caller.name, key).await?
+            {
+                return Ok(pb::CreateJobResponse {
+                    job: Some(jobs::get_job(shared, caller, &job.id).await?),
+                    created: false,
+                });
+            }
+        }
+        let (dataset_source, _) = resolve_input(
+            shared,
+            caller,
+            "dataset",
+            InputKind::Dataset,
+            req.dataset.as_ref(),
+        )
+        .await?;
+        let mut style_sources = Vec::new();
+        for (i, style) in req.styles.iter().enumerate() {
+            style_sources.push(
+                resolve_input(
+                    shared,
+                    caller,
+                    &format!("styles[{i}]"),
+                    InputKind::Style,
+                    Some(style),
+                )
+                .await?,
+            );
+        }
+        let job_id = format!("j-{}", uuid::Uuid::now_v7().simple());
+        let dataset_key = format!("jobs/{job_id}/inputs/scene.tar");
+        shared
+            .storage
+            .copy(&dataset_source, &dataset_key)
+            .await
+            .map_err(internal)?;
+        let mut style_keys = Vec::new();
+        for (i, (source, extension)) in style_sources.iter().enumerate() {
+            let key = format!("jobs/{job_id}/inputs/styles/{i}.{extension}");
+            shared.storage.copy(source, &key).await.map_err(internal)?;
+            style_keys.push(key);
+        }
+        let new_job = NewJob {
+            id: job_id.clone(),
+            owner: caller.name.clone(),
+            name: req.name.clone(),
+            preset,
+            overrides: serde_json::Value::Object(overrides),
+            requirements,
+            dataset_key,
+            style_keys,
+            idempotency_key: idempotency_key.clone(),
+            render,
+        };
+        let mut batch = crate::events::EventBatch::default();
+        let mut tx = shared.db.write.begin().await.map_err(internal)?;
+        let created = jobs::insert_job(&mut tx, &mut batch, &new_job, shared.config.max_attempts)
+            .await
+            .map_err(internal)?;
+        tx.commit().await.map_err(internal)?;
+        let id = if created {
+            shared.publish(batch);
+            shared.wake_workers();
+            metrics::counter!("stylenerf_jobs_created_total").increment(1);
+            job_id
+        } else {
+            // A concurrent request with the same idempotency key won.
+            let key = idempotency_key.unwrap_or_default();
+            jobs::find_by_idempotency_key(&shared.db.write, &caller.name, &key)
+                .await?
+                .map(|job| job.id)
+                .ok_or_else(|| internal("idempotency key conflict without a job"))?
+        };
+        Ok(pb::CreateJobResponse {
+            job: Some(jobs::get_job(shared, caller, &id).await?),
+            created,
+        })
+    }
+}
+
+/// Streams a job's events after `after_seq`, then live ones, until the job is terminal.
+async fn watch(
+    shared: Arc<Shared>,
+    job_id: String,
+    after_seq: i64,
+    skip_progress: bool,
+    tx: mpsc::Sender<Result<pb::Event, Status>>,
+) {
+    let mut live = shared.events.subscribe();
+    let mut shutdown = shared.shutdown.clone();
+    let mut last = after_seq;
+    let wanted = |e: &pb::Event| !(skip_progress && e.kind == pb::EventKind::TaskProgress as i32);
+    let is_end = |e: &pb::Event| {
+        e.kind == pb::EventKind::JobState as i32
+            && matches!(
+                pb::JobState::try_from(e.job_state),
+                Ok(pb::JobState::Succeeded | pb::JobState::Failed | pb::JobState::Cancelled)
+            )
+    };
+    // Replays the log after `last`; returns false when the receiver is gone.
+    async fn replay(
+        shared: &Shared,
+        job_id: &str,
+        last: &mut i64,
+        wanted: &impl Fn(&pb::Event) -> bool,
+        tx: &mpsc::Sender<Result<pb::Event, Status>>,
+    ) -> bool {
+        loop {
+            let page = match read_after(&shared.db.read, job_id, *last, 500).await {
+                Ok(page) => page,
+                Err(e) => {
+                    let _ = tx.send(Err(internal(e))).await;
+                    return false;
+                }
+            };
+            let n = page.len();
+            for event in page {
+                *last = event.seq as i64;
+                if wanted(&event) && tx.send(Ok(event)).await.is_err() {
+                    return false;
+                }
+            }
+            if n < 500 {
+                return true;
+            }
+        }
+    }
+    if !replay(&shared, &job_id, &mut last, &wanted, &tx).await {
+        return;
+    }
+    let state: Option<String> = sqlx::query_scalar("SELECT state FROM jobs WHERE id = ?")
+        .bind(&job_id)
+        .fetch_optional(&shared.db.read)
+        .await
+        .ok()
+        .flatten();
+    if state.as_deref().is_some_and(job_state::is_terminal) {
+        // Anything committed between the replay and the state check.
+        replay(&shared, &job_id, &mut last, &wanted, &tx).await;
+        return;
+    }
+    loop {
+        tokio::select! {
+            received = live.recv() => match received {
+                Ok(event) => {
+                    if event.job_id != job_id || event.seq as i64 <= last {
+                        continue;
+                    }
+                    last = event.seq as i64;
+                    let end = is_end(&event);
+                    if wanted(&event) && tx.send(Ok(event)).await.is_err() {
+                        return;
+                    }
+                    if end {
+                        return;
+                    }
+                }
+                Err(broadcast::error::RecvError::Lagged(_)) => {
+                    if !replay(&shared, &job_id, &mut last, &wanted, &tx).await {
+                        return;
+                    }
+                }
+                Err(broadcast::error::RecvError::Closed) => return,
+            },
+            _ = tx.closed() => return,
+            _ = shutdown.changed() => {
+                let _ = tx.send(Err(Status::unavailable("the coordinator is shutting down"))).await;
+                return;
+            }
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl JobService for JobApi {
+    async fn upload(
+        &self,
+        request: Request<Streaming<pb::UploadChunk>>,
+    ) -> Result<Response<pb::UploadReceipt>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let receipt = receive_upload(&self.shared, &caller, request.into_inner()).await?;
+        tracing::info!(upload = %receipt.upload_id, owner = %caller.name, summary = %receipt.summary, "upload accepted");
+        Ok(Response::new(receipt))
+    }
+
+    async fn create_job(
+        &self,
+        request: Request<pb::CreateJobRequest>,
+    ) -> Result<Response<pb::CreateJobResponse>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let response = self.create(&caller, request.into_inner()).await?;
+        if response.created {
+            if let Some(job) = &response.job {
+                tracing::info!(job = %job.id, owner = %caller.name, "job created");
+            }
+        }
+        Ok(Response::new(response))
+    }
+
+    async fn get_job(
+        &self,
+        request: Request<pb::GetJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let job = jobs::get_job(&self.shared, &caller, &request.get_ref().job_id).await?;
+        Ok(Response::new(job))
+    }
+
+    async fn list_jobs(
+        &self,
+        request: Request<pb::ListJobsRequest>,
+    ) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        let owner = match (caller.role, req.owner.is_empty()) {
+            (Role::Admin, true) => None,
+            (Role::Admin, false) => Some(req.owner.as_str()),
+            _ if req.owner.is_empty() || req.owner == caller.name => Some(caller.name.as_str()),
+            _ => return Err(invalid("owner", "only admins may list other owners' jobs")),
+        };
+        let mut states = Vec::new();
+        for (i, state) in req.states.iter().enumerate() {
+            states.push(
+                job_state_from_pb(*state)
+                    .ok_or_else(|| invalid(format!("states[{i}]"), "unknown job state"))?,
+            );
+        }
+        let page_size = match req.page_size {
+            0 => 50,
+            n => n.min(500),
+        } as i64;
+        let before = if req.page_token.is_empty() {
+            i64::MAX
+        } else {
+            req.page_token
+                .parse::<i64>()
+                .map_err(|_| invalid("page_token", "not a token returned by ListJobs"))?
+        };
+        let mut rows =
+            jobs::list_jobs(&self.shared.db.read, owner, &states, before, page_size + 1).await?;
+        let next_page_token = if rows.len() as i64 > page_size {
+            rows.truncate(page_size as usize);
+            rows.last().map(|r| r.row.to_string()).unwrap_or_default()
+        } else {
+            String::new()
+        };
+        let mut jobs_out = Vec::with_capacity(rows.len());
+        for row in rows {
+            let tasks = if req.include_tasks {
+                jobs::load_tasks(&self.shared.db.read, &row.id).await?
+            } else {
+                Vec::new()
+            };
+            jobs_out.push(jobs::job_to_pb(row, tasks));
+        }
+        Ok(Response::new(pb::ListJobsResponse {
+            jobs: jobs_out,
+            next_page_token,
+        }))
+    }
+
+    type WatchJobStream = BoxStream<pb::Event>;
+
+    async fn watch_job(
+        &self,
+        request: Request<pb::WatchJobRequest>,
+    ) -> Result<Response<Self::WatchJobStream>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
+        let (tx, rx) = mpsc::channel(64);
+        tokio::spawn(watch(
+            self.shared.clone(),
+            req.job_id,
+            req.after_seq.min(i64::MAX as u64) as i64,
+            req.skip_progress,
+            tx,
+        ));
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    async fn cancel_job(
+        &self,
+        request: Request<pb::CancelJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        jobs::cancel_job(&self.shared, &caller, &req.job_id, &req.reason).await?;
+        tracing::info!(job = %req.job_id, by = %caller.name, "job cancelled");
+        let job = jobs::get_job(&self.shared, &caller, &req.job_id).await?;
+        Ok(Response::new(job))
+    }
+
+    async fn list_artifacts(
+        &self,
+        request: Request<pb::ListArtifactsRequest>,
+    ) -> Result<Response<pb::ListArtifactsResponse>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
+        let prefix = format!("jobs/{}/{}", req.job_id, req.prefix);
+        if !req.prefix.is_empty() {
+            check_key("prefix", &req.prefix)?;
+        }
+        let known: std::collections::HashMap<String, String> =
+            jobs::load_artifacts(&self.shared.db.read, &req.job_id)
+                .await?
+                .into_values()
+                .flatten()
+                .map(|a| (a.key, a.sha256))
+                .collect();
+        let artifacts = self
+            .shared
+            .storage
+            .list(&prefix)
+            .await?
+            .into_iter()
+            .map(|(key, size)| pb::Artifact {
+                sha256: known.get(&key).cloned().unwrap_or_default(),
+                key,
+                size,
+            })
+            .collect();
+        Ok(Response::new(pb::ListArtifactsResponse { artifacts }))
+    }
+
+    type DownloadArtifactStream = BoxStream<pb::ObjectChunk>;
+
+    async fn download_artifact(
+        &self,
+        request: Request<pb::DownloadArtifactRequest>,
+    ) -> Result<Response<Self::DownloadArtifactStream>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
+        check_key("key", &req.key)?;
+        if !req.key.starts_with(&format!("jobs/{}/", req.job_id)) {
+            return Err(invalid(
+                "key",
+                format!("must lie under jobs/{}/", req.job_id),
+            ));
+        }
+        let stream = self.shared.storage.get_stream(&req.key, req.offset).await?;
+        Ok(Response::new(Box::pin(stream)))
+    }
+
+    async fn render_job(
+        &self,
+        request: Request<pb::RenderJobRequest>,
+    ) -> Result<Response<pb::Task>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        let job = jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
+        let num_styles = serde_json::from_str::<Vec<String>>(&job.style_keys)
+            .map(|v| v.len())
+            .unwrap_or(0);
+        let mut violations = Vec::new();
+        let mut overrides = match serde_json::from_str::<serde_json::Value>(&job.overrides) {
+            Ok(serde_json::Value::Object(map)) => map,
+            _ => serde_json::Map::new(),
+        };
+        overrides.extend(json_object(
+            "config_overrides_json",
+            &req.config_overrides_json,
+            &mut violations,
+        ));
+        let extra = render_spec(
+            &self.shared,
+            req.camera_path.as_ref(),
+            &req.style_blend,
+            num_styles,
+            &mut violations,
+        );
+        if !violations.is_empty() {
+            return Err(invalid_all(violations));
+        }
+        let task = jobs::add_render(
+            &self.shared,
+            &caller,
+            &req.job_id,
+            serde_json::Value::Object(overrides),
+            extra,
+        )
+        .await?;
+        tracing::info!(job = %req.job_id, task = task.id, "render requested");
+        Ok(Response::new(task))
+    }
+}

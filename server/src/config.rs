@@ -1,0 +1,316 @@
+//! Coordinator configuration: the `CoordinatorConfig` used by embedders, and the command-line
+//! options (`CoordinatorArgs`, flags and environment variables) layered over an optional TOML
+//! file. Precedence: flag or environment variable, then the file, then the default.
+
+use crate::auth::{AuthConfig, TokenEntry};
+use anyhow::Context;
+use serde::Deserialize;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// Everything a coordinator needs to start.
+#[derive(Debug, Clone)]
+pub struct CoordinatorConfig {
+    /// gRPC listen address (port 0 = an ephemeral port, see `CoordinatorHandle::local_addr`).
+    pub listen: SocketAddr,
+    /// Prometheus `/metrics` listen address; `None` = no metrics endpoint.
+    pub metrics_listen: Option<SocketAddr>,
+    /// SQLite database file (created with its directory if missing).
+    pub database: PathBuf,
+    /// Object store: a local directory (plain path or `file://` URL) or, when built with the
+    /// `cloud` feature, an `s3://`, `gs://` or `az://` URL.
+    pub storage_url: String,
+    pub auth: AuthConfig,
+    pub tls: Option<TlsConfig>,
+    /// Lease duration; each heartbeat extends the lease by this much.
+    pub lease_ttl: Duration,
+    /// Heartbeat interval suggested to workers (should be well below `lease_ttl`).
+    pub heartbeat_interval: Duration,
+    /// Longest a `LeaseTask` long-poll waits.
+    pub max_lease_wait: Duration,
+    /// Leases per task before the job fails.
+    pub max_attempts: u32,
+    /// How often expired leases are requeued and gauges refreshed.
+    pub reaper_interval: Duration,
+    /// A worker not heard from for this long no longer counts as live.
+    pub worker_timeout: Duration,
+    /// Accepted preset names.
+    pub presets: Vec<String>,
+    pub limits: Limits,
+    /// Directory for upload spool files (default: the system temporary directory).
+    pub spool_dir: Option<PathBuf>,
+}
+
+/// TLS certificate chain and private key, PEM files.
+#[derive(Debug, Clone)]
+pub struct TlsConfig {
+    pub cert: PathBuf,
+    pub key: PathBuf,
+}
+
+/// Size and count limits checked at submission.
+#[derive(Debug, Clone)]
+pub struct Limits {
+    /// Largest dataset archive.
+    pub max_dataset_bytes: u64,
+    /// Largest single archive member.
+    pub max_member_bytes: u64,
+    /// Most members in an archive.
+    pub max_archive_members: u64,
+    /// Most camera frames in a scene.
+    pub max_frames: u64,
+    /// Largest style image file.
+    pub max_style_bytes: u64,
+    /// Largest style image width or height.
+    pub max_style_dimension: u32,
+    /// Most styles per job.
+    pub max_styles: usize,
+    /// Most frames of a stylized render.
+    pub max_render_frames: u32,
+    /// Largest object a worker may store through `ArtifactService`.
+    pub max_object_bytes: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        const MIB: u64 = 1 << 20;
+        Limits {
+            max_dataset_bytes: 2048 * MIB,
+            max_member_bytes: 512 * MIB,
+            max_archive_members: 100_000,
+            max_frames: 10_000,
+            max_style_bytes: 32 * MIB,
+            max_style_dimension: 8192,
+            max_styles: 8,
+            max_render_frames: 3600,
+            max_object_bytes: 4096 * MIB,
+        }
+    }
+}
+
+/// The default preset names (the engine's presets).
+pub const DEFAULT_PRESETS: &[&str] = &["tiny", "quick", "standard", "paper"];
+
+impl CoordinatorConfig {
+    /// A loopback coordinator for embedding (demo, tests, `stylenerf up`): ephemeral port, no
+    /// metrics endpoint, SQLite and artifacts under `data_dir`, authentication disabled.
+    pub fn local(data_dir: &Path) -> Self {
+        CoordinatorConfig {
+            listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+            metrics_listen: None,
+            database: data_dir.join("coordinator.db"),
+            storage_url: data_dir.join("artifacts").display().to_string(),
+            auth: AuthConfig::Disabled,
+            tls: None,
+            lease_ttl: Duration::from_secs(30),
+            heartbeat_interval: Duration::from_secs(5),
+            max_lease_wait: Duration::from_secs(20),
+            max_attempts: 3,
+            reaper_interval: Duration::from_secs(1),
+            worker_timeout: Duration::from_secs(60),
+            presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
+            limits: Limits::default(),
+            spool_dir: None,
+        }
+    }
+}
+
+/// Command-line options of `stylenerf coordinator`. Every option can also be set with its
+/// environment variable or in the `--config` TOML file (same names with underscores).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct CoordinatorArgs {
+    /// TOML file with any of these options (keys as the long flags with `_` for `-`).
+    #[arg(long, env = "STYLENERF_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// gRPC listen address [default: 127.0.0.1:50051].
+    #[arg(long, env = "STYLENERF_LISTEN")]
+    pub listen: Option<SocketAddr>,
+    /// Prometheus metrics listen address, or `off` [default: 127.0.0.1:9464].
+    #[arg(long, env = "STYLENERF_METRICS_LISTEN")]
+    pub metrics_listen: Option<String>,
+    /// SQLite database file [default: stylenerf-data/coordinator.db].
+    #[arg(long, env = "STYLENERF_DATABASE")]
+    pub database: Option<PathBuf>,
+    /// Artifact store: a directory, `file:///dir`, or (with the `cloud` build feature)
+    /// `s3://bucket/prefix`, `gs://bucket/prefix`, `az://container/prefix` with credentials
+    /// from the usual AWS_*, GOOGLE_*, AZURE_* variables [default: stylenerf-data/artifacts].
+    #[arg(long, env = "STYLENERF_STORAGE")]
+    pub storage: Option<String>,
+    /// File of bearer tokens, one `role:name:token` per line (role: client, worker or admin;
+    /// `#` starts a comment).
+    #[arg(long, env = "STYLENERF_TOKENS_FILE")]
+    pub tokens_file: Option<PathBuf>,
+    /// Further tokens, `role:name:token` entries separated by commas or newlines.
+    #[arg(long, env = "STYLENERF_TOKENS", hide_env_values = true)]
+    pub tokens: Option<String>,
+    /// Accept every call without a token, as an admin (local development only).
+    #[arg(long, env = "STYLENERF_INSECURE_NO_AUTH")]
+    pub insecure_no_auth: bool,
+    /// TLS certificate chain (PEM); enables TLS together with --tls-key.
+    #[arg(long, env = "STYLENERF_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM).
+    #[arg(long, env = "STYLENERF_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Lease duration in seconds; heartbeats extend it [default: 30].
+    #[arg(long, env = "STYLENERF_LEASE_TTL")]
+    pub lease_ttl: Option<f64>,
+    /// Heartbeat interval suggested to workers, in seconds [default: 5].
+    #[arg(long, env = "STYLENERF_HEARTBEAT_INTERVAL")]
+    pub heartbeat_interval: Option<f64>,
+    /// Longest LeaseTask long-poll, in seconds [default: 20].
+    #[arg(long, env = "STYLENERF_MAX_LEASE_WAIT")]
+    pub max_lease_wait: Option<f64>,
+    /// Leases per task before its job fails [default: 3].
+    #[arg(long, env = "STYLENERF_MAX_ATTEMPTS")]
+    pub max_attempts: Option<u32>,
+    /// Accepted preset names, comma-separated [default: tiny,quick,standard,paper].
+    #[arg(long, env = "STYLENERF_PRESETS", value_delimiter = ',')]
+    pub presets: Option<Vec<String>>,
+    /// Largest dataset archive in MiB [default: 2048].
+    #[arg(long, env = "STYLENERF_MAX_DATASET_MIB")]
+    pub max_dataset_mib: Option<u64>,
+    /// Largest style image in MiB [default: 32].
+    #[arg(long, env = "STYLENERF_MAX_STYLE_MIB")]
+    pub max_style_mib: Option<u64>,
+    /// Most styles per job [default: 8].
+    #[arg(long, env = "STYLENERF_MAX_STYLES")]
+    pub max_styles: Option<usize>,
+    /// Directory for upload spool files [default: the system temporary directory].
+    #[arg(long, env = "STYLENERF_SPOOL_DIR")]
+    pub spool_dir: Option<PathBuf>,
+}
+
+/// The `--config` file: the same options as the flags.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileConfig {
+    listen: Option<SocketAddr>,
+    metrics_listen: Option<String>,
+    database: Option<PathBuf>,
+    storage: Option<String>,
+    tokens_file: Option<PathBuf>,
+    tokens: Option<String>,
+    insecure_no_auth: Option<bool>,
+    tls_cert: Option<PathBuf>,
+    tls_key: Option<PathBuf>,
+    lease_ttl: Option<f64>,
+    heartbeat_interval: Option<f64>,
+    max_lease_wait: Option<f64>,
+    max_attempts: Option<u32>,
+    presets: Option<Vec<String>>,
+    max_dataset_mib: Option<u64>,
+    max_style_mib: Option<u64>,
+    max_styles: Option<usize>,
+    spool_dir: Option<PathBuf>,
+}
+
+impl CoordinatorArgs {
+    /// Resolves flags, environment, the config file and defaults into a configuration.
+    pub fn into_config(self) -> anyhow::Result<CoordinatorConfig> {
+        let file: FileConfig = match &self.config {
+            Some(path) => {
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("reading config file {}", path.display()))?;
+                toml::from_str(&text)
+                    .with_context(|| format!("parsing config file {}", path.display()))?
+            }
+            None => FileConfig::default(),
+        };
+        let data = PathBuf::from("stylenerf-data");
+        let mut config = CoordinatorConfig::local(&data);
+        config.listen = self
+            .listen
+            .or(file.listen)
+            .unwrap_or_else(|| SocketAddr::from(([127, 0, 0, 1], 50051)));
+        let metrics = self
+            .metrics_listen
+            .or(file.metrics_listen)
+            .unwrap_or_else(|| "127.0.0.1:9464".into());
+        config.metrics_listen = if metrics == "off" {
+            None
+        } else {
+            Some(
+                metrics
+                    .parse()
+                    .with_context(|| format!("--metrics-listen {metrics:?}"))?,
+            )
+        };
+        if let Some(db) = self.database.or(file.database) {
+            config.database = db;
+        }
+        if let Some(storage) = self.storage.or(file.storage) {
+            config.storage_url = storage;
+        }
+        let insecure = self.insecure_no_auth || file.insecure_no_auth.unwrap_or(false);
+        let mut tokens = Vec::new();
+        if let Some(path) = self.tokens_file.or(file.tokens_file) {
+            let text = std::fs::read_to_string(&path)
+                .with_context(|| format!("reading tokens file {}", path.display()))?;
+            tokens.extend(
+                TokenEntry::parse_list(&text)
+                    .with_context(|| format!("in tokens file {}", path.display()))?,
+            );
+        }
+        if let Some(list) = self.tokens.or(file.tokens) {
+            tokens.extend(TokenEntry::parse_list(&list).context("in --tokens")?);
+        }
+        config.auth = match (insecure, tokens.is_empty()) {
+            (true, _) => AuthConfig::Disabled,
+            (false, false) => AuthConfig::Tokens(tokens),
+            (false, true) => anyhow::bail!(
+                "no tokens configured: give --tokens-file or --tokens, or --insecure-no-auth for \
+                 local development"
+            ),
+        };
+        config.tls = match (
+            self.tls_cert.or(file.tls_cert),
+            self.tls_key.or(file.tls_key),
+        ) {
+            (Some(cert), Some(key)) => Some(TlsConfig { cert, key }),
+            (None, None) => None,
+            _ => anyhow::bail!("TLS needs both a certificate and a key"),
+        };
+        let secs = |v: Option<f64>, name: &str, default: Duration| -> anyhow::Result<Duration> {
+            match v {
+                None => Ok(default),
+                Some(s) if s.is_finite() && s > 0.0 => Ok(Duration::from_secs_f64(s)),
+                Some(s) => anyhow::bail!("{name} must be a positive number of seconds, not {s}"),
+            }
+        };
+        config.lease_ttl = secs(
+            self.lease_ttl.or(file.lease_ttl),
+            "lease_ttl",
+            config.lease_ttl,
+        )?;
+        config.heartbeat_interval = secs(
+            self.heartbeat_interval.or(file.heartbeat_interval),
+            "heartbeat_interval",
+            config.heartbeat_interval,
+        )?;
+        config.max_lease_wait = secs(
+            self.max_lease_wait.or(file.max_lease_wait),
+            "max_lease_wait",
+            config.max_lease_wait,
+        )?;
+        if let Some(n) = self.max_attempts.or(file.max_attempts) {
+            anyhow::ensure!(n >= 1, "max_attempts must be at least 1");
+            config.max_attempts = n;
+        }
+        if let Some(presets) = self.presets.or(file.presets) {
+            config.presets = presets;
+        }
+        if let Some(mib) = self.max_dataset_mib.or(file.max_dataset_mib) {
+            config.limits.max_dataset_bytes = mib << 20;
+        }
+        if let Some(mib) = self.max_style_mib.or(file.max_style_mib) {
+            config.limits.max_style_bytes = mib << 20;
+        }
+        if let Some(n) = self.max_styles.or(file.max_styles) {
+            config.limits.max_styles = n;
+        }
+        config.spool_dir = self.spool_dir.or(file.spool_dir);
+        Ok(config)
+    }
+}

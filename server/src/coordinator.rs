@@ -1,0 +1,203 @@
+//! The embeddable coordinator: `Coordinator::start` opens the database and store, serves the
+//! gRPC services (with health and reflection), the metrics endpoint and the lease reaper, and
+//! returns a `CoordinatorHandle` to learn the bound address and shut everything down.
+
+use crate::api::artifact_api::ArtifactApi;
+use crate::api::job_api::JobApi;
+use crate::api::worker_api::WorkerApi;
+use crate::auth::Authenticator;
+use crate::config::CoordinatorConfig;
+use crate::db::Db;
+use crate::scheduler;
+use crate::state::Shared;
+use crate::storage::Storage;
+use std::net::SocketAddr;
+use std::sync::atomic::AtomicI64;
+use std::sync::Arc;
+use std::time::Duration;
+use stylenerf_proto::v1::artifact_service_server::ArtifactServiceServer;
+use stylenerf_proto::v1::job_service_server::JobServiceServer;
+use stylenerf_proto::v1::worker_service_server::WorkerServiceServer;
+use tokio::sync::{broadcast, watch, Notify};
+use tokio::task::JoinHandle;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::server::TcpIncoming;
+use tonic::transport::{Identity, Server, ServerTlsConfig};
+
+/// Largest gRPC message accepted (upload chunks are at most 1 MiB; manifests can be long).
+const MAX_MESSAGE_BYTES: usize = 16 << 20;
+
+/// Entry point for running a coordinator in-process.
+pub struct Coordinator;
+
+/// A running coordinator.
+pub struct CoordinatorHandle {
+    local_addr: SocketAddr,
+    metrics_addr: Option<SocketAddr>,
+    tls: bool,
+    shared: Arc<Shared>,
+    stop: watch::Sender<bool>,
+    server: JoinHandle<Result<(), tonic::transport::Error>>,
+    background: Vec<JoinHandle<()>>,
+}
+
+impl Coordinator {
+    /// Starts a coordinator: applies migrations, binds the listeners and spawns the services
+    /// on the current Tokio runtime.
+    pub async fn start(config: CoordinatorConfig) -> anyhow::Result<CoordinatorHandle> {
+        let db = Db::open(&config.database).await?;
+        let storage = Storage::open(&config.storage_url)?;
+        let (stop, stop_rx) = watch::channel(false);
+        let (events, _) = broadcast::channel(4096);
+        let shared = Arc::new(Shared {
+            db,
+            storage,
+            config: config.clone(),
+            events,
+            ready: Notify::new(),
+            shutdown: stop_rx.clone(),
+            next_expiry_check: AtomicI64::new(0),
+        });
+
+        let auth = Authenticator::new(&config.auth);
+        let interceptor = move |request| auth.intercept(request);
+        let jobs = JobServiceServer::new(JobApi {
+            shared: shared.clone(),
+        })
+        .max_decoding_message_size(MAX_MESSAGE_BYTES);
+        let workers = WorkerServiceServer::new(WorkerApi {
+            shared: shared.clone(),
+        })
+        .max_decoding_message_size(MAX_MESSAGE_BYTES);
+        let artifacts = ArtifactServiceServer::new(ArtifactApi {
+            shared: shared.clone(),
+        })
+        .max_decoding_message_size(MAX_MESSAGE_BYTES);
+
+        let (health, health_service) = tonic_health::server::health_reporter();
+        health.set_serving::<JobServiceServer<JobApi>>().await;
+        health.set_serving::<WorkerServiceServer<WorkerApi>>().await;
+        health
+            .set_serving::<ArtifactServiceServer<ArtifactApi>>()
+            .await;
+        let reflection = tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(stylenerf_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+            .build_v1()?;
+
+        let mut server = Server::builder().tcp_nodelay(true);
+        if let Some(tls) = &config.tls {
+            let cert = std::fs::read(&tls.cert)
+                .map_err(|e| anyhow::anyhow!("reading {}: {e}", tls.cert.display()))?;
+            let key = std::fs::read(&tls.key)
+                .map_err(|e| anyhow::anyhow!("reading {}: {e}", tls.key.display()))?;
+            server = server
+                .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))?;
+        }
+        let router = server
+            .add_service(health_service)
+            .add_service(reflection)
+            .add_service(InterceptedService::new(jobs, interceptor.clone()))
+            .add_service(InterceptedService::new(workers, interceptor.clone()))
+            .add_service(InterceptedService::new(artifacts, interceptor));
+
+        let listener = tokio::net::TcpListener::bind(config.listen).await?;
+        let local_addr = listener.local_addr()?;
+        let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+        let mut server_stop = stop_rx.clone();
+        let server = tokio::spawn(router.serve_with_incoming_shutdown(incoming, async move {
+            let _ = server_stop.wait_for(|stop| *stop).await;
+        }));
+
+        let mut background = vec![tokio::spawn(reaper(shared.clone()))];
+        let metrics_addr = match config.metrics_listen {
+            Some(addr) => {
+                let (addr, task) = crate::metrics_http::serve(addr, stop_rx.clone()).await?;
+                background.push(task);
+                Some(addr)
+            }
+            None => {
+                crate::metrics_http::handle();
+                None
+            }
+        };
+        tracing::info!(
+            %local_addr,
+            metrics = ?metrics_addr,
+            database = %config.database.display(),
+            storage = %shared.storage.url(),
+            "coordinator listening"
+        );
+        Ok(CoordinatorHandle {
+            local_addr,
+            metrics_addr,
+            tls: config.tls.is_some(),
+            shared,
+            stop,
+            server,
+            background,
+        })
+    }
+}
+
+/// Requeues expired leases and refreshes the gauges every `reaper_interval`.
+async fn reaper(shared: Arc<Shared>) {
+    let mut shutdown = shared.shutdown.clone();
+    let mut tick = tokio::time::interval(shared.config.reaper_interval);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = shutdown.wait_for(|stop| *stop) => return,
+        }
+        if let Err(e) = scheduler::reap(&shared).await {
+            tracing::warn!(error = %e, "reaping expired leases failed");
+        }
+        if let Err(e) = scheduler::refresh_gauges(&shared).await {
+            tracing::warn!(error = %e, "refreshing gauges failed");
+        }
+    }
+}
+
+impl CoordinatorHandle {
+    /// The bound gRPC address (useful with port 0).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// The URL clients and workers connect to, e.g. `http://127.0.0.1:50051`.
+    pub fn endpoint(&self) -> String {
+        let scheme = if self.tls { "https" } else { "http" };
+        format!("{scheme}://{}", self.local_addr)
+    }
+
+    /// The bound metrics address, if the endpoint is enabled.
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
+    }
+
+    /// The object store URL handed to workers.
+    pub fn storage_url(&self) -> &str {
+        self.shared.storage.url()
+    }
+
+    /// Stops accepting calls, ends long-polls and watch streams, waits up to five seconds for
+    /// calls in flight, and closes the database.
+    pub async fn shutdown(self) -> anyhow::Result<()> {
+        let _ = self.stop.send(true);
+        let mut server = self.server;
+        match tokio::time::timeout(Duration::from_secs(5), &mut server).await {
+            Ok(joined) => joined??,
+            Err(_) => {
+                tracing::warn!("calls still in flight after 5 s; aborting them");
+                server.abort();
+            }
+        }
+        for task in self.background {
+            let _ = tokio::time::timeout(Duration::from_secs(5), task).await;
+        }
+        self.shared.db.close().await;
+        tracing::info!("coordinator stopped");
+        Ok(())
+    }
+}

@@ -1,0 +1,167 @@
+//! The job event log: events are appended to the `events` table inside the transaction that
+//! causes them, then published to live `WatchJob` streams after the commit; replays read the
+//! table.
+
+use crate::model::{job_state_pb, stage_pb, task_state_pb, StoredProgress};
+use sqlx::SqliteConnection;
+use stylenerf_proto::v1 as pb;
+
+/// An event about to be appended.
+#[derive(Debug, Default)]
+pub struct NewEvent<'a> {
+    pub job_id: &'a str,
+    pub kind: &'static str,
+    pub task_id: i64,
+    pub stage: &'a str,
+    pub job_state: &'a str,
+    pub task_state: &'a str,
+    pub attempt: i64,
+    pub progress: Option<&'a StoredProgress>,
+    pub message: &'a str,
+}
+
+pub const JOB_CREATED: &str = "job_created";
+pub const JOB_STATE: &str = "job_state";
+pub const TASK_STATE: &str = "task_state";
+pub const TASK_PROGRESS: &str = "task_progress";
+
+impl<'a> NewEvent<'a> {
+    pub fn job(job_id: &'a str, kind: &'static str, state: &'a str, message: &'a str) -> Self {
+        NewEvent {
+            job_id,
+            kind,
+            job_state: state,
+            message,
+            ..Default::default()
+        }
+    }
+
+    pub fn task(
+        job_id: &'a str,
+        task_id: i64,
+        stage: &'a str,
+        state: &'a str,
+        attempt: i64,
+        message: &'a str,
+    ) -> Self {
+        NewEvent {
+            job_id,
+            kind: TASK_STATE,
+            task_id,
+            stage,
+            task_state: state,
+            attempt,
+            message,
+            ..Default::default()
+        }
+    }
+}
+
+/// Events appended in one transaction, published once it commits.
+#[derive(Debug, Default)]
+pub struct EventBatch {
+    pub events: Vec<pb::Event>,
+}
+
+impl EventBatch {
+    /// Appends an event to the log (inside the caller's transaction).
+    pub async fn push(
+        &mut self,
+        conn: &mut SqliteConnection,
+        event: NewEvent<'_>,
+    ) -> Result<(), sqlx::Error> {
+        let at = crate::model::now_ms();
+        let progress = event
+            .progress
+            .map(StoredProgress::to_json)
+            .unwrap_or_default();
+        let seq: i64 = sqlx::query_scalar(
+            "INSERT INTO events (job_id, at, kind, task_id, stage, job_state, task_state, attempt, \
+             progress, message) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING seq",
+        )
+        .bind(event.job_id)
+        .bind(at)
+        .bind(event.kind)
+        .bind(event.task_id)
+        .bind(event.stage)
+        .bind(event.job_state)
+        .bind(event.task_state)
+        .bind(event.attempt)
+        .bind(&progress)
+        .bind(event.message)
+        .fetch_one(&mut *conn)
+        .await?;
+        self.events.push(to_pb(EventRow {
+            seq,
+            job_id: event.job_id.to_string(),
+            at,
+            kind: event.kind.to_string(),
+            task_id: event.task_id,
+            stage: event.stage.to_string(),
+            job_state: event.job_state.to_string(),
+            task_state: event.task_state.to_string(),
+            attempt: event.attempt,
+            progress,
+            message: event.message.to_string(),
+        }));
+        Ok(())
+    }
+}
+
+/// A row of the `events` table.
+#[derive(Debug, sqlx::FromRow)]
+pub struct EventRow {
+    pub seq: i64,
+    pub job_id: String,
+    pub at: i64,
+    pub kind: String,
+    pub task_id: i64,
+    pub stage: String,
+    pub job_state: String,
+    pub task_state: String,
+    pub attempt: i64,
+    pub progress: String,
+    pub message: String,
+}
+
+pub fn to_pb(row: EventRow) -> pb::Event {
+    let kind = match row.kind.as_str() {
+        JOB_CREATED => pb::EventKind::JobCreated,
+        JOB_STATE => pb::EventKind::JobState,
+        TASK_STATE => pb::EventKind::TaskState,
+        TASK_PROGRESS => pb::EventKind::TaskProgress,
+        _ => pb::EventKind::Unspecified,
+    };
+    pb::Event {
+        seq: row.seq as u64,
+        job_id: row.job_id,
+        at_ms: row.at,
+        kind: kind as i32,
+        task_id: row.task_id as u64,
+        stage: stage_pb(&row.stage),
+        job_state: job_state_pb(&row.job_state),
+        task_state: task_state_pb(&row.task_state),
+        attempt: row.attempt as u32,
+        progress: (!row.progress.is_empty()).then(|| StoredProgress::parse(&row.progress).to_pb()),
+        message: row.message,
+    }
+}
+
+/// Events of a job after `after_seq`, oldest first, at most `limit`.
+pub async fn read_after(
+    pool: &sqlx::SqlitePool,
+    job_id: &str,
+    after_seq: i64,
+    limit: i64,
+) -> Result<Vec<pb::Event>, sqlx::Error> {
+    let rows: Vec<EventRow> = sqlx::query_as(
+        "SELECT seq, job_id, at, kind, task_id, stage, job_state, task_state, attempt, progress, \
+         message FROM events WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+    )
+    .bind(job_id)
+    .bind(after_seq)
+    .bind(limit)
+    .fetch_all(pool)
+    .await?;
+    Ok(rows.into_iter().map(to_pb).collect())
+}

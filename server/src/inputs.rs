@@ -1,0 +1,276 @@
+//! Job inputs: receiving chunked uploads into a spool file (size and SHA-256 checked as the
+//! bytes arrive), validating datasets and style images off the async runtime, storing accepted
+//! uploads under `uploads/<id>/`, and validating objects that operators staged in the store.
+
+use crate::auth::Principal;
+use crate::errors::{internal, invalid};
+use crate::model::now_ms;
+use crate::state::Shared;
+use crate::storage::check_sha256;
+use crate::validation::{validate_dataset_archive, validate_style_image};
+use futures::{Stream, StreamExt};
+use sha2::{Digest, Sha256};
+use stylenerf_proto::v1 as pb;
+use tokio::io::AsyncWriteExt;
+use tonic::Status;
+
+/// The two kinds of inputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InputKind {
+    Dataset,
+    Style,
+}
+
+impl InputKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            InputKind::Dataset => "dataset",
+            InputKind::Style => "style",
+        }
+    }
+
+    fn to_pb(self) -> pb::UploadKind {
+        match self {
+            InputKind::Dataset => pb::UploadKind::DatasetArchive,
+            InputKind::Style => pb::UploadKind::StyleImage,
+        }
+    }
+}
+
+/// Validates a complete input file; returns a summary and the extension to store it with.
+async fn validate_file(
+    shared: &Shared,
+    kind: InputKind,
+    path: std::path::PathBuf,
+) -> Result<Result<(String, &'static str), String>, Status> {
+    let limits = shared.config.limits.clone();
+    tokio::task::spawn_blocking(move || match kind {
+        InputKind::Dataset => {
+            let file = std::fs::File::open(&path).map_err(|e| e.to_string())?;
+            validate_dataset_archive(std::io::BufReader::new(file), &limits)
+                .map(|summary| (summary.to_string(), "tar"))
+        }
+        InputKind::Style => {
+            let bytes = std::fs::read(&path).map_err(|e| e.to_string())?;
+            validate_style_image(&bytes, &limits)
+                .map(|summary| (summary.to_string(), summary.extension()))
+        }
+    })
+    .await
+    .map_err(internal)
+}
+
+fn spool_file(shared: &Shared) -> Result<tempfile::NamedTempFile, Status> {
+    match &shared.config.spool_dir {
+        Some(dir) => tempfile::NamedTempFile::new_in(dir),
+        None => tempfile::NamedTempFile::new(),
+    }
+    .map_err(internal)
+}
+
+/// Receives an `Upload` stream, validates it and stores it as an upload of `caller`.
+pub async fn receive_upload<S>(
+    shared: &Shared,
+    caller: &Principal,
+    mut stream: S,
+) -> Result<pb::UploadReceipt, Status>
+where
+    S: Stream<Item = Result<pb::UploadChunk, Status>> + Unpin,
+{
+    let header = match stream.next().await {
+        Some(Ok(pb::UploadChunk {
+            part: Some(pb::upload_chunk::Part::Header(header)),
+        })) => header,
+        Some(Err(status)) => return Err(status),
+        _ => {
+            return Err(invalid(
+                "header",
+                "the first message must be the upload header",
+            ))
+        }
+    };
+    let kind = match pb::UploadKind::try_from(header.kind) {
+        Ok(pb::UploadKind::DatasetArchive) => InputKind::Dataset,
+        Ok(pb::UploadKind::StyleImage) => InputKind::Style,
+        _ => {
+            return Err(invalid(
+                "header.kind",
+                "must be DATASET_ARCHIVE or STYLE_IMAGE",
+            ))
+        }
+    };
+    let limit = match kind {
+        InputKind::Dataset => shared.config.limits.max_dataset_bytes,
+        InputKind::Style => shared.config.limits.max_style_bytes,
+    };
+    let filename = header.filename.trim();
+    if filename.is_empty()
+        || filename.len() > 255
+        || filename.contains(['/', '\\'])
+        || filename.chars().any(char::is_control)
+        || filename.starts_with('.')
+    {
+        return Err(invalid(
+            "header.filename",
+            "must be a plain file name (no directories, 1-255 characters, not starting with `.`)",
+        ));
+    }
+    if header.total_size == 0 {
+        return Err(invalid("header.total_size", "must be greater than 0"));
+    }
+    if header.total_size > limit {
+        return Err(invalid(
+            "header.total_size",
+            format!(
+                "{} bytes is more than the {} limit of {limit} bytes",
+                header.total_size,
+                kind.as_str()
+            ),
+        ));
+    }
+    check_sha256("header.sha256", &header.sha256)?;
+
+    let spool = spool_file(shared)?;
+    let mut file = tokio::fs::File::create(spool.path())
+        .await
+        .map_err(internal)?;
+    let mut hasher = Sha256::new();
+    let mut received = 0u64;
+    while let Some(message) = stream.next().await {
+        let data = match message?.part {
+            Some(pb::upload_chunk::Part::Data(data)) => data,
+            _ => return Err(invalid("header", "only the first message may be a header")),
+        };
+        received += data.len() as u64;
+        if received > header.total_size {
+            return Err(invalid(
+                "data",
+                format!(
+                    "more data than header.total_size ({} bytes)",
+                    header.total_size
+                ),
+            ));
+        }
+        hasher.update(&data);
+        file.write_all(&data).await.map_err(internal)?;
+    }
+    file.flush().await.map_err(internal)?;
+    drop(file);
+    if received != header.total_size {
+        return Err(invalid(
+            "data",
+            format!(
+                "the stream ended after {received} of {} bytes",
+                header.total_size
+            ),
+        ));
+    }
+    let actual = hex::encode(hasher.finalize());
+    if actual != header.sha256 {
+        return Err(invalid(
+            "header.sha256",
+            format!("checksum mismatch: the uploaded data has SHA-256 {actual}"),
+        ));
+    }
+    let (summary, extension) = validate_file(shared, kind, spool.path().to_path_buf())
+        .await?
+        .map_err(|why| invalid("data", why))?;
+
+    let id = format!("u-{}", uuid::Uuid::now_v7().simple());
+    let key = format!("uploads/{id}/{}.{extension}", kind.as_str());
+    shared
+        .storage
+        .put_file(&key, spool.path())
+        .await
+        .map_err(internal)?;
+    sqlx::query(
+        "INSERT INTO uploads (id, owner, kind, key, filename, size, sha256, summary, created_at) \
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+    )
+    .bind(&id)
+    .bind(&caller.name)
+    .bind(kind.as_str())
+    .bind(&key)
+    .bind(filename)
+    .bind(received as i64)
+    .bind(&actual)
+    .bind(&summary)
+    .bind(now_ms())
+    .execute(&shared.db.write)
+    .await
+    .map_err(internal)?;
+    Ok(pb::UploadReceipt {
+        upload_id: id,
+        kind: kind.to_pb() as i32,
+        size: received,
+        sha256: actual,
+        summary,
+    })
+}
+
+/// Resolves an `InputRef` to the object key of a validated input and the extension to copy
+/// it with. `field` names the reference in errors.
+pub async fn resolve_input(
+    shared: &Shared,
+    caller: &Principal,
+    field: &str,
+    kind: InputKind,
+    input: Option<&pb::InputRef>,
+) -> Result<(String, String), Status> {
+    use pb::input_ref::Source;
+    match input.and_then(|i| i.source.as_ref()) {
+        None => Err(invalid(
+            field,
+            "missing: give an upload_id or an object_key",
+        )),
+        Some(Source::UploadId(id)) => {
+            let row: Option<(String, String, String)> =
+                sqlx::query_as("SELECT owner, kind, key FROM uploads WHERE id = ?")
+                    .bind(id)
+                    .fetch_optional(&shared.db.read)
+                    .await
+                    .map_err(internal)?;
+            match row {
+                Some((owner, stored_kind, key)) if caller.can_see(&owner) => {
+                    if stored_kind != kind.as_str() {
+                        return Err(invalid(
+                            format!("{field}.upload_id"),
+                            format!("upload {id:?} is a {stored_kind}, not a {}", kind.as_str()),
+                        ));
+                    }
+                    let extension = key.rsplit('.').next().unwrap_or("bin").to_string();
+                    Ok((key, extension))
+                }
+                _ => Err(invalid(
+                    format!("{field}.upload_id"),
+                    format!("no upload {id:?}"),
+                )),
+            }
+        }
+        Some(Source::ObjectKey(key)) => {
+            let key_field = format!("{field}.object_key");
+            crate::storage::check_key(&key_field, key)?;
+            let limit = match kind {
+                InputKind::Dataset => shared.config.limits.max_dataset_bytes,
+                InputKind::Style => shared.config.limits.max_style_bytes,
+            };
+            let size = shared
+                .storage
+                .size(key)
+                .await
+                .map_err(|s| invalid(&key_field, s.message().to_string()))?;
+            if size > limit {
+                return Err(invalid(
+                    &key_field,
+                    format!("{size} bytes is more than the limit of {limit} bytes"),
+                ));
+            }
+            let spool = spool_file(shared)?;
+            shared.storage.get_to_file(key, spool.path()).await?;
+            let (_, extension) = validate_file(shared, kind, spool.path().to_path_buf())
+                .await?
+                .map_err(|why| invalid(&key_field, why))?;
+            Ok((key.clone(), extension.to_string()))
+        }
+    }
+}

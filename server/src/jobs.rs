@@ -1,0 +1,581 @@
+//! Jobs in the database: creating a job with its five stage tasks and their dependencies,
+//! loading jobs and tasks as protocol messages, listing, cancelling, and adding renders.
+
+use crate::auth::Principal;
+use crate::errors::{internal, job_not_found};
+use crate::events::{EventBatch, NewEvent, JOB_CREATED, JOB_STATE};
+use crate::model::{
+    job_state, job_state_pb, now_ms, stage_pb, task_state, task_state_pb, Stage, StoredProgress,
+};
+use crate::state::Shared;
+use sqlx::{SqliteConnection, SqlitePool};
+use std::collections::HashMap;
+use stylenerf_proto::v1 as pb;
+use tonic::Status;
+
+/// A row of the `jobs` table.
+#[derive(Debug, Clone, sqlx::FromRow)]
+pub struct JobRow {
+    pub row: i64,
+    pub id: String,
+    pub owner: String,
+    pub name: String,
+    pub state: String,
+    pub preset: String,
+    pub overrides: String,
+    pub require_cuda: bool,
+    pub labels: String,
+    pub memory_bytes: i64,
+    pub dataset_key: String,
+    pub style_keys: String,
+    pub idempotency_key: Option<String>,
+    pub error: String,
+    pub created_at: i64,
+    pub updated_at: i64,
+    pub finished_at: i64,
+}
+
+/// A row of the `tasks` table.
+#[derive(Debug, Clone, sqlx::FromRow)]
+pub struct TaskRow {
+    pub id: i64,
+    pub job_id: String,
+    pub stage: String,
+    pub state: String,
+    pub core: bool,
+    pub config: String,
+    pub memory_bytes: i64,
+    pub output_prefix: String,
+    pub attempt: i64,
+    pub max_attempts: i64,
+    pub fencing_token: i64,
+    pub worker_id: String,
+    pub lease_expires_at: i64,
+    pub leased_at: i64,
+    pub progress: String,
+    pub error: String,
+    pub created_at: i64,
+    pub started_at: i64,
+    pub finished_at: i64,
+}
+
+/// Everything needed to insert a job; inputs are already stored under `jobs/<id>/inputs/`.
+#[derive(Debug)]
+pub struct NewJob {
+    pub id: String,
+    pub owner: String,
+    pub name: String,
+    pub preset: String,
+    pub overrides: serde_json::Value,
+    pub requirements: pb::Requirements,
+    pub dataset_key: String,
+    pub style_keys: Vec<String>,
+    pub idempotency_key: Option<String>,
+    /// Extra configuration of the final render (`camera_path`, `style_blend`).
+    pub render: serde_json::Map<String, serde_json::Value>,
+}
+
+/// The job of `owner` with this idempotency key, if any.
+pub async fn find_by_idempotency_key(
+    pool: &SqlitePool,
+    owner: &str,
+    key: &str,
+) -> Result<Option<JobRow>, Status> {
+    sqlx::query_as("SELECT * FROM jobs WHERE owner = ? AND idempotency_key = ?")
+        .bind(owner)
+        .bind(key)
+        .fetch_optional(pool)
+        .await
+        .map_err(internal)
+}
+
+/// Output prefix of a stage task.
+pub fn stage_prefix(job_id: &str, stage: Stage) -> String {
+    format!("jobs/{job_id}/{}/", stage.as_str())
+}
+
+/// The JSON configuration handed to the worker of one task.
+fn task_config(
+    stage: Stage,
+    preset: &str,
+    overrides: &serde_json::Value,
+    num_styles: usize,
+    extra: &serde_json::Map<String, serde_json::Value>,
+) -> String {
+    let mut config = serde_json::Map::new();
+    config.insert("stage".into(), stage.as_str().into());
+    config.insert("preset".into(), preset.into());
+    config.insert("overrides".into(), overrides.clone());
+    config.insert("num_styles".into(), num_styles.into());
+    for (k, v) in extra {
+        config.insert(k.clone(), v.clone());
+    }
+    serde_json::Value::Object(config).to_string()
+}
+
+/// Inserts a job, its five tasks (the first ready, the others pending on their predecessor) and
+/// the creation events. Returns `None` when the idempotency key is already taken.
+pub async fn insert_job(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    job: &NewJob,
+    max_attempts: u32,
+) -> Result<bool, sqlx::Error> {
+    let now = now_ms();
+    let inserted = sqlx::query(
+        "INSERT INTO jobs (id, owner, name, state, preset, overrides, require_cuda, labels, \
+         memory_bytes, dataset_key, style_keys, idempotency_key, created_at, updated_at) \
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
+         ON CONFLICT (owner, idempotency_key) WHERE idempotency_key IS NOT NULL DO NOTHING",
+    )
+    .bind(&job.id)
+    .bind(&job.owner)
+    .bind(&job.name)
+    .bind(job_state::QUEUED)
+    .bind(&job.preset)
+    .bind(job.overrides.to_string())
+    .bind(job.requirements.require_cuda)
+    .bind(serde_json::to_string(&job.requirements.labels).unwrap_or_else(|_| "[]".into()))
+    .bind(job.requirements.memory_bytes.min(i64::MAX as u64) as i64)
+    .bind(&job.dataset_key)
+    .bind(serde_json::to_string(&job.style_keys).unwrap_or_else(|_| "[]".into()))
+    .bind(&job.idempotency_key)
+    .bind(now)
+    .bind(now)
+    .execute(&mut *conn)
+    .await?
+    .rows_affected();
+    if inserted == 0 {
+        return Ok(false);
+    }
+    batch
+        .push(
+            conn,
+            NewEvent::job(&job.id, JOB_CREATED, job_state::QUEUED, "job accepted"),
+        )
+        .await?;
+    let no_extra = serde_json::Map::new();
+    let mut previous: Option<i64> = None;
+    for stage in Stage::ALL {
+        let state = if previous.is_none() {
+            task_state::READY
+        } else {
+            task_state::PENDING
+        };
+        let memory = match job.requirements.memory_bytes {
+            0 => stage.default_memory_bytes(),
+            m => m.min(i64::MAX as u64) as i64,
+        };
+        let extra = if stage == Stage::RenderStylized {
+            &job.render
+        } else {
+            &no_extra
+        };
+        let config = task_config(
+            stage,
+            &job.preset,
+            &job.overrides,
+            job.style_keys.len(),
+            extra,
+        );
+        let id: i64 = sqlx::query_scalar(
+            "INSERT INTO tasks (job_id, stage, state, core, config, memory_bytes, output_prefix, \
+             max_attempts, ready_at, created_at) VALUES (?, ?, ?, 1, ?, ?, ?, ?, ?, ?) RETURNING id",
+        )
+        .bind(&job.id)
+        .bind(stage.as_str())
+        .bind(state)
+        .bind(config)
+        .bind(memory)
+        .bind(stage_prefix(&job.id, stage))
+        .bind(max_attempts as i64)
+        .bind(if previous.is_none() { now } else { 0 })
+        .bind(now)
+        .fetch_one(&mut *conn)
+        .await?;
+        if let Some(dep) = previous {
+            sqlx::query("INSERT INTO task_deps (task_id, depends_on) VALUES (?, ?)")
+                .bind(id)
+                .bind(dep)
+                .execute(&mut *conn)
+                .await?;
+        }
+        batch
+            .push(
+                conn,
+                NewEvent::task(&job.id, id, stage.as_str(), state, 0, "task created"),
+            )
+            .await?;
+        previous = Some(id);
+    }
+    Ok(true)
+}
+
+/// Loads a job the caller may see, or NOT_FOUND.
+pub async fn visible_job(
+    pool: &SqlitePool,
+    caller: &Principal,
+    job_id: &str,
+) -> Result<JobRow, Status> {
+    let row: Option<JobRow> = sqlx::query_as("SELECT * FROM jobs WHERE id = ?")
+        .bind(job_id)
+        .fetch_optional(pool)
+        .await
+        .map_err(internal)?;
+    match row {
+        Some(job) if caller.can_see(&job.owner) => Ok(job),
+        _ => Err(job_not_found(job_id)),
+    }
+}
+
+/// A task row with its dependencies as a comma-separated list.
+#[derive(sqlx::FromRow)]
+struct TaskWithDeps {
+    #[sqlx(flatten)]
+    task: TaskRow,
+    deps: String,
+}
+
+/// The tasks of a job as protocol messages, with dependencies and output manifests.
+pub async fn load_tasks(pool: &SqlitePool, job_id: &str) -> Result<Vec<pb::Task>, Status> {
+    let rows: Vec<TaskWithDeps> = sqlx::query_as(
+        "SELECT t.*, COALESCE((SELECT group_concat(depends_on) FROM task_deps \
+         WHERE task_id = t.id), '') AS deps FROM tasks t WHERE t.job_id = ? ORDER BY t.id",
+    )
+    .bind(job_id)
+    .fetch_all(pool)
+    .await
+    .map_err(internal)?;
+    let mut outputs = load_artifacts(pool, job_id).await?;
+    Ok(rows
+        .into_iter()
+        .map(|row| {
+            let outputs = outputs.remove(&row.task.id).unwrap_or_default();
+            let depends_on = row.deps.split(',').filter_map(|d| d.parse().ok()).collect();
+            task_to_pb(row.task, outputs, depends_on)
+        })
+        .collect())
+}
+
+/// Recorded output manifests of a job's tasks, by task id.
+pub async fn load_artifacts(
+    pool: &SqlitePool,
+    job_id: &str,
+) -> Result<HashMap<i64, Vec<pb::Artifact>>, Status> {
+    let rows: Vec<(i64, String, i64, String)> = sqlx::query_as(
+        "SELECT task_id, key, size, sha256 FROM artifacts WHERE job_id = ? ORDER BY key",
+    )
+    .bind(job_id)
+    .fetch_all(pool)
+    .await
+    .map_err(internal)?;
+    let mut out: HashMap<i64, Vec<pb::Artifact>> = HashMap::new();
+    for (task, key, size, sha256) in rows {
+        out.entry(task).or_default().push(pb::Artifact {
+            key,
+            size: size as u64,
+            sha256,
+        });
+    }
+    Ok(out)
+}
+
+pub fn task_to_pb(row: TaskRow, outputs: Vec<pb::Artifact>, depends_on: Vec<u64>) -> pb::Task {
+    pb::Task {
+        id: row.id as u64,
+        job_id: row.job_id,
+        stage: stage_pb(&row.stage),
+        state: task_state_pb(&row.state),
+        attempt: row.attempt as u32,
+        max_attempts: row.max_attempts as u32,
+        progress: Some(StoredProgress::parse(&row.progress).to_pb()),
+        worker_id: row.worker_id,
+        lease_expires_at_ms: row.lease_expires_at,
+        created_at_ms: row.created_at,
+        started_at_ms: row.started_at,
+        finished_at_ms: row.finished_at,
+        error: row.error,
+        output_prefix: row.output_prefix,
+        outputs,
+        depends_on,
+        config_json: row.config,
+    }
+}
+
+pub fn job_to_pb(row: JobRow, tasks: Vec<pb::Task>) -> pb::Job {
+    pb::Job {
+        id: row.id,
+        name: row.name,
+        owner: row.owner,
+        state: job_state_pb(&row.state),
+        preset: row.preset,
+        config_overrides_json: row.overrides,
+        requirements: Some(pb::Requirements {
+            require_cuda: row.require_cuda,
+            labels: serde_json::from_str(&row.labels).unwrap_or_default(),
+            memory_bytes: row.memory_bytes as u64,
+        }),
+        dataset_key: row.dataset_key,
+        style_keys: serde_json::from_str(&row.style_keys).unwrap_or_default(),
+        idempotency_key: row.idempotency_key.unwrap_or_default(),
+        created_at_ms: row.created_at,
+        updated_at_ms: row.updated_at,
+        finished_at_ms: row.finished_at,
+        error: row.error,
+        tasks,
+    }
+}
+
+/// A job with its tasks, if the caller may see it.
+pub async fn get_job(shared: &Shared, caller: &Principal, job_id: &str) -> Result<pb::Job, Status> {
+    let row = visible_job(&shared.db.read, caller, job_id).await?;
+    let tasks = load_tasks(&shared.db.read, job_id).await?;
+    Ok(job_to_pb(row, tasks))
+}
+
+/// Lists jobs newest first. `owner` is `None` for an admin listing everyone's jobs.
+pub async fn list_jobs(
+    pool: &SqlitePool,
+    owner: Option<&str>,
+    states: &[&str],
+    before_row: i64,
+    limit: i64,
+) -> Result<Vec<JobRow>, Status> {
+    let mut query = sqlx::QueryBuilder::<sqlx::Sqlite>::new("SELECT * FROM jobs WHERE row < ");
+    query.push_bind(before_row);
+    if let Some(owner) = owner {
+        query.push(" AND owner = ").push_bind(owner.to_string());
+    }
+    if !states.is_empty() {
+        query.push(" AND state IN (");
+        let mut list = query.separated(", ");
+        for state in states {
+            list.push_bind(state.to_string());
+        }
+        query.push(")");
+    }
+    query.push(" ORDER BY row DESC LIMIT ").push_bind(limit);
+    query
+        .build_query_as()
+        .fetch_all(pool)
+        .await
+        .map_err(internal)
+}
+
+/// Moves a job to a terminal or running state and records the event.
+pub async fn set_job_state(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    job_id: &str,
+    state: &str,
+    error: Option<&str>,
+) -> Result<(), sqlx::Error> {
+    let now = now_ms();
+    let finished = if job_state::is_terminal(state) {
+        now
+    } else {
+        0
+    };
+    sqlx::query(
+        "UPDATE jobs SET state = ?, updated_at = ?, finished_at = ?, error = COALESCE(?, error) \
+         WHERE id = ?",
+    )
+    .bind(state)
+    .bind(now)
+    .bind(finished)
+    .bind(error)
+    .bind(job_id)
+    .execute(&mut *conn)
+    .await?;
+    batch
+        .push(
+            conn,
+            NewEvent::job(job_id, JOB_STATE, state, error.unwrap_or("")),
+        )
+        .await
+}
+
+/// Cancels every unfinished task of a job (leased ones keep their lease so that the worker
+/// learns of the cancellation from its next heartbeat).
+pub async fn cancel_open_tasks(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    job_id: &str,
+    reason: &str,
+) -> Result<(), sqlx::Error> {
+    let cancelled: Vec<(i64, String, i64)> = sqlx::query_as(
+        "UPDATE tasks SET state = 'cancelled', finished_at = ? \
+         WHERE job_id = ? AND state IN ('pending', 'ready', 'leased') RETURNING id, stage, attempt",
+    )
+    .bind(now_ms())
+    .bind(job_id)
+    .fetch_all(&mut *conn)
+    .await?;
+    for (id, stage, attempt) in cancelled {
+        batch
+            .push(
+                conn,
+                NewEvent::task(job_id, id, &stage, task_state::CANCELLED, attempt, reason),
+            )
+            .await?;
+    }
+    Ok(())
+}
+
+/// Cancels a job the caller may see; a terminal job is returned unchanged.
+pub async fn cancel_job(
+    shared: &Shared,
+    caller: &Principal,
+    job_id: &str,
+    reason: &str,
+) -> Result<(), Status> {
+    let mut tx = shared.db.write.begin().await.map_err(internal)?;
+    let job: Option<(String, String)> =
+        sqlx::query_as("SELECT owner, state FROM jobs WHERE id = ?")
+            .bind(job_id)
+            .fetch_optional(&mut *tx)
+            .await
+            .map_err(internal)?;
+    let state = match job {
+        Some((owner, state)) if caller.can_see(&owner) => state,
+        _ => return Err(job_not_found(job_id)),
+    };
+    if job_state::is_terminal(&state) {
+        return Ok(());
+    }
+    let reason = if reason.is_empty() {
+        format!("cancelled by {}", caller.name)
+    } else {
+        format!("cancelled by {}: {reason}", caller.name)
+    };
+    let mut batch = EventBatch::default();
+    cancel_open_tasks(&mut tx, &mut batch, job_id, &reason)
+        .await
+        .map_err(internal)?;
+    set_job_state(
+        &mut tx,
+        &mut batch,
+        job_id,
+        job_state::CANCELLED,
+        Some(&reason),
+    )
+    .await
+    .map_err(internal)?;
+    tx.commit().await.map_err(internal)?;
+    shared.publish(batch);
+    Ok(())
+}
+
+/// Adds a `render_stylized` task to a job whose mutual learning succeeded. `extra` holds the
+/// render's `camera_path`/`style_blend`, `overrides` the job's overrides merged with the
+/// render's.
+pub async fn add_render(
+    shared: &Shared,
+    caller: &Principal,
+    job_id: &str,
+    overrides: serde_json::Value,
+    extra: serde_json::Map<String, serde_json::Value>,
+) -> Result<pb::Task, Status> {
+    let mut tx = shared.db.write.begin().await.map_err(internal)?;
+    let job: Option<JobRow> = sqlx::query_as("SELECT * FROM jobs WHERE id = ?")
+        .bind(job_id)
+        .fetch_optional(&mut *tx)
+        .await
+        .map_err(internal)?;
+    let job = match job {
+        Some(job) if caller.can_see(&job.owner) => job,
+        _ => return Err(job_not_found(job_id)),
+    };
+    if matches!(job.state.as_str(), job_state::FAILED | job_state::CANCELLED) {
+        return Err(Status::failed_precondition(format!(
+            "job {job_id} is {}; only a running or succeeded job can render",
+            job.state
+        )));
+    }
+    let mutual: Option<(i64, String)> = sqlx::query_as(
+        "SELECT id, state FROM tasks WHERE job_id = ? AND stage = 'mutual_learning' AND core = 1",
+    )
+    .bind(job_id)
+    .fetch_optional(&mut *tx)
+    .await
+    .map_err(internal)?;
+    let mutual_id = match mutual {
+        Some((id, state)) if state == task_state::SUCCEEDED => id,
+        _ => {
+            return Err(Status::failed_precondition(format!(
+                "job {job_id}: the mutual_learning stage has not succeeded yet"
+            )))
+        }
+    };
+    let style_count = serde_json::from_str::<Vec<String>>(&job.style_keys)
+        .map(|v| v.len())
+        .unwrap_or(0);
+    let memory = match job.memory_bytes {
+        0 => Stage::RenderStylized.default_memory_bytes(),
+        m => m,
+    };
+    let now = now_ms();
+    let config = task_config(
+        Stage::RenderStylized,
+        &job.preset,
+        &overrides,
+        style_count,
+        &extra,
+    );
+    let id: i64 = sqlx::query_scalar(
+        "INSERT INTO tasks (job_id, stage, state, core, config, memory_bytes, output_prefix, \
+         max_attempts, ready_at, created_at) VALUES (?, 'render_stylized', 'ready', 0, ?, ?, '', \
+         ?, ?, ?) RETURNING id",
+    )
+    .bind(job_id)
+    .bind(config)
+    .bind(memory)
+    .bind(shared.config.max_attempts as i64)
+    .bind(now)
+    .bind(now)
+    .fetch_one(&mut *tx)
+    .await
+    .map_err(internal)?;
+    let prefix = format!("jobs/{job_id}/render_stylized/{id}/");
+    sqlx::query("UPDATE tasks SET output_prefix = ? WHERE id = ?")
+        .bind(&prefix)
+        .bind(id)
+        .execute(&mut *tx)
+        .await
+        .map_err(internal)?;
+    sqlx::query("INSERT INTO task_deps (task_id, depends_on) VALUES (?, ?)")
+        .bind(id)
+        .bind(mutual_id)
+        .execute(&mut *tx)
+        .await
+        .map_err(internal)?;
+    let mut batch = EventBatch::default();
+    batch
+        .push(
+            &mut tx,
+            NewEvent::task(
+                job_id,
+                id,
+                Stage::RenderStylized.as_str(),
+                task_state::READY,
+                0,
+                "render requested",
+            ),
+        )
+        .await
+        .map_err(internal)?;
+    if job.state == job_state::SUCCEEDED {
+        set_job_state(&mut tx, &mut batch, job_id, job_state::RUNNING, None)
+            .await
+            .map_err(internal)?;
+    }
+    let row: TaskRow = sqlx::query_as("SELECT * FROM tasks WHERE id = ?")
+        .bind(id)
+        .fetch_one(&mut *tx)
+        .await
+        .map_err(internal)?;
+    tx.commit().await.map_err(internal)?;
+    shared.publish(batch);
+    shared.wake_workers();
+    Ok(task_to_pb(row, Vec::new(), vec![mutual_id as u64]))
+}

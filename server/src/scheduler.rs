@@ -1,0 +1,790 @@
+//! Task scheduling: worker registration, leasing (oldest ready task first, matched against the
+//! worker's device, labels and free memory), heartbeats that extend leases, completion and
+//! failure under fencing tokens, promotion of dependent tasks, and requeueing of expired leases.
+//! Every state change happens in one write transaction.
+
+use crate::errors::{internal, invalid};
+use crate::events::{EventBatch, NewEvent, JOB_STATE, TASK_PROGRESS};
+use crate::jobs::{cancel_open_tasks, set_job_state, TaskRow};
+use crate::model::{job_state, now_ms, task_state, Stage, StoredProgress};
+use crate::state::Shared;
+use sqlx::SqliteConnection;
+use std::collections::HashSet;
+use std::sync::atomic::Ordering;
+use stylenerf_proto::v1 as pb;
+use tonic::Status;
+
+/// Registers a worker (or refreshes a known id) and returns its id.
+pub async fn register_worker(
+    shared: &Shared,
+    owner: &str,
+    request: &pb::RegisterWorkerRequest,
+) -> Result<String, Status> {
+    let caps = request.capabilities.clone().unwrap_or_default();
+    let device = if caps.device.is_empty() {
+        "cpu".to_string()
+    } else {
+        caps.device.clone()
+    };
+    if !(device == "cpu" || device == "cuda" || device.starts_with("cuda:")) {
+        return Err(invalid(
+            "capabilities.device",
+            format!("{device:?}: expected `cpu`, `cuda` or `cuda:N`"),
+        ));
+    }
+    if request.name.len() > 200 {
+        return Err(invalid("name", "longer than 200 characters"));
+    }
+    let id = if request.worker_id.is_empty() {
+        format!("w-{}", uuid::Uuid::now_v7().simple())
+    } else {
+        request.worker_id.clone()
+    };
+    if id.len() > 100 {
+        return Err(invalid("worker_id", "longer than 100 characters"));
+    }
+    let now = now_ms();
+    sqlx::query(
+        "INSERT INTO workers (id, name, owner, device, memory_bytes, labels, max_tasks, \
+         registered_at, last_seen_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) \
+         ON CONFLICT (id) DO UPDATE SET name = excluded.name, owner = excluded.owner, \
+         device = excluded.device, memory_bytes = excluded.memory_bytes, labels = excluded.labels, \
+         max_tasks = excluded.max_tasks, last_seen_at = excluded.last_seen_at",
+    )
+    .bind(&id)
+    .bind(&request.name)
+    .bind(owner)
+    .bind(&device)
+    .bind(caps.memory_bytes.min(i64::MAX as u64) as i64)
+    .bind(serde_json::to_string(&caps.labels).unwrap_or_else(|_| "[]".into()))
+    .bind(caps.max_tasks.max(1) as i64)
+    .bind(now)
+    .bind(now)
+    .execute(&shared.db.write)
+    .await
+    .map_err(internal)?;
+    Ok(id)
+}
+
+#[derive(sqlx::FromRow)]
+struct WorkerRow {
+    device: String,
+    memory_bytes: i64,
+    labels: String,
+    max_tasks: i64,
+    running: i64,
+    reserved: i64,
+}
+
+/// Expired leases are also looked for at lease time, at most this often (milliseconds); the
+/// reaper does it every `reaper_interval` in any case.
+const LEASE_TIME_EXPIRY_CHECK_MS: i64 = 100;
+
+/// Tries once to lease a task to a worker. The write transaction only claims the task; the
+/// assignment's inputs are read afterwards from the read pool.
+pub async fn try_lease(
+    shared: &Shared,
+    worker_id: &str,
+    free_memory: u64,
+) -> Result<Option<pb::TaskAssignment>, Status> {
+    let now = now_ms();
+    let mut batch = EventBatch::default();
+    let mut tx = shared.db.write.begin().await.map_err(internal)?;
+    let check_expiry = shared
+        .next_expiry_check
+        .fetch_max(now + LEASE_TIME_EXPIRY_CHECK_MS, Ordering::Relaxed)
+        <= now;
+    let requeued = check_expiry
+        && expire_leases(&mut tx, &mut batch, now)
+            .await
+            .map_err(internal)?;
+    let worker: Option<WorkerRow> = sqlx::query_as(
+        "UPDATE workers SET last_seen_at = ? WHERE id = ? \
+         RETURNING device, memory_bytes, labels, max_tasks, \
+         (SELECT COUNT(*) FROM tasks WHERE worker_id = workers.id AND state = 'leased') AS running, \
+         (SELECT COALESCE(SUM(memory_bytes), 0) FROM tasks \
+          WHERE worker_id = workers.id AND state = 'leased') AS reserved",
+    )
+    .bind(now)
+    .bind(worker_id)
+    .fetch_optional(&mut *tx)
+    .await
+    .map_err(internal)?;
+    let Some(worker) = worker else {
+        return Err(Status::not_found(format!(
+            "worker {worker_id:?} is not registered (call RegisterWorker)"
+        )));
+    };
+    let mut leased = None;
+    if worker.running < worker.max_tasks.max(1) {
+        let free = if free_memory > 0 {
+            free_memory.min(i64::MAX as u64) as i64
+        } else if worker.memory_bytes > 0 {
+            worker.memory_bytes - worker.reserved
+        } else {
+            i64::MAX
+        };
+        let cuda = worker.device.starts_with("cuda");
+        let candidates: Vec<(i64, String)> = sqlx::query_as(
+            "SELECT t.id, j.labels FROM tasks t JOIN jobs j ON j.id = t.job_id \
+             WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
+             ORDER BY t.ready_at, t.id LIMIT 64",
+        )
+        .bind(free)
+        .bind(cuda)
+        .fetch_all(&mut *tx)
+        .await
+        .map_err(internal)?;
+        let labels: HashSet<String> = serde_json::from_str(&worker.labels).unwrap_or_default();
+        let chosen = candidates.into_iter().find(|(_, job_labels)| {
+            serde_json::from_str::<Vec<String>>(job_labels)
+                .unwrap_or_default()
+                .iter()
+                .all(|l| labels.contains(l))
+        });
+        if let Some((task_id, _)) = chosen {
+            leased = Some(
+                claim(shared, &mut tx, &mut batch, task_id, worker_id, now)
+                    .await
+                    .map_err(internal)?,
+            );
+        }
+    }
+    tx.commit().await.map_err(internal)?;
+    shared.publish(batch);
+    if requeued {
+        shared.wake_workers();
+    }
+    let Some(task) = leased else {
+        return Ok(None);
+    };
+    metrics::counter!("stylenerf_leases_total", "stage" => task.stage.clone()).increment(1);
+    assignment(shared, task).await.map(Some).map_err(internal)
+}
+
+/// Marks a ready task leased by `worker_id` under a new fencing token.
+async fn claim(
+    shared: &Shared,
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    task_id: i64,
+    worker_id: &str,
+    now: i64,
+) -> Result<TaskRow, sqlx::Error> {
+    let ttl = shared.config.lease_ttl.as_millis() as i64;
+    let task: TaskRow = sqlx::query_as(
+        "UPDATE tasks SET state = 'leased', attempt = attempt + 1, \
+         fencing_token = fencing_token + 1, worker_id = ?, leased_at = ?, lease_expires_at = ?, \
+         started_at = CASE WHEN started_at = 0 THEN ? ELSE started_at END \
+         WHERE id = ? RETURNING *",
+    )
+    .bind(worker_id)
+    .bind(now)
+    .bind(now + ttl)
+    .bind(now)
+    .bind(task_id)
+    .fetch_one(&mut *conn)
+    .await?;
+    let message = format!("leased by {worker_id}");
+    batch
+        .push(
+            conn,
+            NewEvent::task(
+                &task.job_id,
+                task.id,
+                &task.stage,
+                task_state::LEASED,
+                task.attempt,
+                &message,
+            ),
+        )
+        .await?;
+    let started = sqlx::query(
+        "UPDATE jobs SET state = 'running', updated_at = ? WHERE id = ? AND state = 'queued'",
+    )
+    .bind(now)
+    .bind(&task.job_id)
+    .execute(&mut *conn)
+    .await?
+    .rows_affected();
+    if started > 0 {
+        batch
+            .push(
+                conn,
+                NewEvent::job(&task.job_id, JOB_STATE, job_state::RUNNING, ""),
+            )
+            .await?;
+    }
+    Ok(task)
+}
+
+/// Builds the assignment of a freshly leased task: the job's inputs and the outputs of the
+/// completed upstream stages (committed data, read from the read pool).
+async fn assignment(shared: &Shared, task: TaskRow) -> Result<pb::TaskAssignment, sqlx::Error> {
+    let pool = &shared.db.read;
+    let (dataset_key, style_keys): (String, String) =
+        sqlx::query_as("SELECT dataset_key, style_keys FROM jobs WHERE id = ?")
+            .bind(&task.job_id)
+            .fetch_one(pool)
+            .await?;
+    let rows: Vec<(
+        i64,
+        String,
+        String,
+        Option<String>,
+        Option<i64>,
+        Option<String>,
+    )> = sqlx::query_as(
+        "SELECT t.id, t.stage, t.output_prefix, a.key, a.size, a.sha256 FROM tasks t \
+             LEFT JOIN artifacts a ON a.task_id = t.id \
+             WHERE t.job_id = ? AND t.core = 1 AND t.state = 'succeeded' ORDER BY t.id, a.key",
+    )
+    .bind(&task.job_id)
+    .fetch_all(pool)
+    .await?;
+    let order = |s: &str| Stage::ALL.iter().position(|x| x.as_str() == s);
+    let mut inputs: Vec<pb::StageInput> = Vec::new();
+    for (id, stage, prefix, key, size, sha256) in rows {
+        if order(&stage) >= order(&task.stage) {
+            continue;
+        }
+        if inputs.last().is_none_or(|i| i.task_id != id as u64) {
+            inputs.push(pb::StageInput {
+                stage: crate::model::stage_pb(&stage),
+                task_id: id as u64,
+                prefix,
+                artifacts: Vec::new(),
+            });
+        }
+        if let (Some(key), Some(size), Some(sha256), Some(input)) =
+            (key, size, sha256, inputs.last_mut())
+        {
+            input.artifacts.push(pb::Artifact {
+                key,
+                size: size as u64,
+                sha256,
+            });
+        }
+    }
+    Ok(pb::TaskAssignment {
+        task_id: task.id as u64,
+        job_id: task.job_id.clone(),
+        stage: crate::model::stage_pb(&task.stage),
+        attempt: task.attempt as u32,
+        fencing_token: task.fencing_token as u64,
+        lease_expires_at_ms: task.lease_expires_at,
+        lease_ttl_ms: shared.config.lease_ttl.as_millis() as u64,
+        heartbeat_interval_ms: shared.config.heartbeat_interval.as_millis() as u64,
+        config_json: task.config.clone(),
+        dataset_key,
+        style_keys: serde_json::from_str(&style_keys).unwrap_or_default(),
+        inputs,
+        checkpoint_prefix: format!("{}ckpt/", task.output_prefix),
+        output_prefix: task.output_prefix,
+        memory_bytes: task.memory_bytes as u64,
+        object_store_url: shared.storage.url().to_string(),
+    })
+}
+
+/// The lease a heartbeat, completion or failure refers to.
+struct HeldLease {
+    task: TaskRow,
+    /// The job was cancelled while the task ran.
+    cancelled: bool,
+}
+
+/// Checks that `worker_id` holds the lease of `task_id` under `token`. An expired lease is
+/// requeued (or failed) here and reported as lost; the caller must commit in that case.
+async fn check_lease(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    worker_id: &str,
+    task_id: u64,
+    token: u64,
+    now: i64,
+) -> Result<Result<HeldLease, Status>, sqlx::Error> {
+    let task: Option<TaskRow> = sqlx::query_as("SELECT * FROM tasks WHERE id = ?")
+        .bind(task_id as i64)
+        .fetch_optional(&mut *conn)
+        .await?;
+    let Some(task) = task else {
+        return Ok(Err(Status::not_found(format!("task {task_id} not found"))));
+    };
+    if task.fencing_token as u64 != token || task.worker_id != worker_id {
+        return Ok(Err(Status::failed_precondition(format!(
+            "stale lease: task {task_id} is held under fencing token {} by {:?}, not token \
+             {token} by {worker_id:?}",
+            task.fencing_token, task.worker_id
+        ))));
+    }
+    match task.state.as_str() {
+        task_state::CANCELLED => Ok(Ok(HeldLease {
+            task,
+            cancelled: true,
+        })),
+        task_state::LEASED if task.lease_expires_at >= now => Ok(Ok(HeldLease {
+            task,
+            cancelled: false,
+        })),
+        task_state::LEASED => {
+            expire_task(conn, batch, &task).await?;
+            Ok(Err(Status::failed_precondition(format!(
+                "lease of task {task_id} expired {} ms ago",
+                now - task.lease_expires_at
+            ))))
+        }
+        state => Ok(Err(Status::failed_precondition(format!(
+            "lease of task {task_id} is no longer held: the task is {state}"
+        )))),
+    }
+}
+
+/// Records progress and extends the lease. Returns `(cancel, lease_expires_at_ms)`.
+pub async fn heartbeat(
+    shared: &Shared,
+    request: &pb::HeartbeatRequest,
+) -> Result<(bool, i64), Status> {
+    let now = now_ms();
+    let expires = now + shared.config.lease_ttl.as_millis() as i64;
+    let progress = request.progress.as_ref().map(StoredProgress::from_pb);
+    let mut batch = EventBatch::default();
+    let mut tx = shared.db.write.begin().await.map_err(internal)?;
+    // The common case in one statement: the lease is held and current.
+    let extended: Option<(String, String, i64)> = sqlx::query_as(
+        "UPDATE tasks SET lease_expires_at = ?, progress = COALESCE(?, progress) \
+         WHERE id = ? AND fencing_token = ? AND worker_id = ? AND state = 'leased' \
+         AND lease_expires_at >= ? RETURNING job_id, stage, attempt",
+    )
+    .bind(expires)
+    .bind(progress.as_ref().map(StoredProgress::to_json))
+    .bind(request.task_id as i64)
+    .bind(request.fencing_token as i64)
+    .bind(&request.worker_id)
+    .bind(now)
+    .fetch_optional(&mut *tx)
+    .await
+    .map_err(internal)?;
+    let Some((job_id, stage, attempt)) = extended else {
+        // Not held: find out why (cancelled, expired, stale) for the reply.
+        let held = check_lease(
+            &mut tx,
+            &mut batch,
+            &request.worker_id,
+            request.task_id,
+            request.fencing_token,
+            now,
+        )
+        .await
+        .map_err(internal)?;
+        tx.commit().await.map_err(internal)?;
+        shared.publish(batch);
+        shared.wake_workers();
+        let held = held?;
+        return Ok((held.cancelled, held.task.lease_expires_at));
+    };
+    if let Some(progress) = &progress {
+        batch
+            .push(
+                &mut tx,
+                NewEvent {
+                    job_id: &job_id,
+                    kind: TASK_PROGRESS,
+                    task_id: request.task_id as i64,
+                    stage: &stage,
+                    task_state: task_state::LEASED,
+                    attempt,
+                    progress: Some(progress),
+                    ..Default::default()
+                },
+            )
+            .await
+            .map_err(internal)?;
+    }
+    tx.commit().await.map_err(internal)?;
+    shared.publish(batch);
+    Ok((false, expires))
+}
+
+/// Completes a task with its output manifest; dependents become ready and a job whose tasks
+/// are all done succeeds.
+pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Result<(), Status> {
+    for (i, artifact) in request.outputs.iter().enumerate() {
+        crate::storage::check_key(&format!("outputs[{i}].key"), &artifact.key)?;
+        crate::storage::check_sha256(&format!("outputs[{i}].sha256"), &artifact.sha256)?;
+    }
+    let now = now_ms();
+    let mut batch = EventBatch::default();
+    let mut tx = shared.db.write.begin().await.map_err(internal)?;
+    let held = check_lease(
+        &mut tx,
+        &mut batch,
+        &request.worker_id,
+        request.task_id,
+        request.fencing_token,
+        now,
+    )
+    .await
+    .map_err(internal)?;
+    let held = match held {
+        Ok(held) => held,
+        Err(status) => {
+            tx.commit().await.map_err(internal)?;
+            shared.publish(batch);
+            shared.wake_workers();
+            return Err(status);
+        }
+    };
+    if held.cancelled {
+        return Ok(());
+    }
+    let task = held.task;
+    for (i, artifact) in request.outputs.iter().enumerate() {
+        if !artifact.key.starts_with(&task.output_prefix) {
+            return Err(invalid(
+                format!("outputs[{i}].key"),
+                format!(
+                    "{:?} is outside the task's output prefix {:?}",
+                    artifact.key, task.output_prefix
+                ),
+            ));
+        }
+    }
+    let mut progress = StoredProgress::parse(&task.progress);
+    for (k, v) in &request.metrics {
+        if v.is_finite() {
+            progress.metrics.insert(k.clone(), *v);
+        }
+    }
+    if progress.total > 0 {
+        progress.step = progress.total;
+    }
+    progress.eta_seconds = 0.0;
+    sqlx::query(
+        "UPDATE tasks SET state = 'succeeded', finished_at = ?, lease_expires_at = 0, \
+         progress = ?, error = '' WHERE id = ?",
+    )
+    .bind(now)
+    .bind(progress.to_json())
+    .bind(task.id)
+    .execute(&mut *tx)
+    .await
+    .map_err(internal)?;
+    sqlx::query("DELETE FROM artifacts WHERE task_id = ?")
+        .bind(task.id)
+        .execute(&mut *tx)
+        .await
+        .map_err(internal)?;
+    for chunk in request.outputs.chunks(200) {
+        let mut insert = sqlx::QueryBuilder::<sqlx::Sqlite>::new(
+            "INSERT INTO artifacts (key, job_id, task_id, size, sha256) ",
+        );
+        insert.push_values(chunk, |mut row, a| {
+            row.push_bind(a.key.clone())
+                .push_bind(task.job_id.clone())
+                .push_bind(task.id)
+                .push_bind(a.size.min(i64::MAX as u64) as i64)
+                .push_bind(a.sha256.clone());
+        });
+        insert.push(
+            " ON CONFLICT (key) DO UPDATE SET job_id = excluded.job_id, \
+             task_id = excluded.task_id, size = excluded.size, sha256 = excluded.sha256",
+        );
+        insert.build().execute(&mut *tx).await.map_err(internal)?;
+    }
+    batch
+        .push(
+            &mut tx,
+            NewEvent::task(
+                &task.job_id,
+                task.id,
+                &task.stage,
+                task_state::SUCCEEDED,
+                task.attempt,
+                "",
+            ),
+        )
+        .await
+        .map_err(internal)?;
+    let promoted = promote_dependents(&mut tx, &mut batch, &task)
+        .await
+        .map_err(internal)?;
+    settle_job(&mut tx, &mut batch, &task.job_id)
+        .await
+        .map_err(internal)?;
+    tx.commit().await.map_err(internal)?;
+    shared.publish(batch);
+    if promoted {
+        shared.wake_workers();
+    }
+    let seconds = (now - task.leased_at).max(0) as f64 / 1000.0;
+    metrics::histogram!("stylenerf_task_duration_seconds", "stage" => task.stage.clone())
+        .record(seconds);
+    metrics::counter!("stylenerf_tasks_finished_total", "stage" => task.stage, "outcome" => "succeeded")
+        .increment(1);
+    Ok(())
+}
+
+/// Fails a task: retryable failures are requeued while attempts remain. Returns whether the
+/// task was requeued.
+pub async fn fail(shared: &Shared, request: &pb::FailTaskRequest) -> Result<bool, Status> {
+    let now = now_ms();
+    let mut batch = EventBatch::default();
+    let mut tx = shared.db.write.begin().await.map_err(internal)?;
+    let held = check_lease(
+        &mut tx,
+        &mut batch,
+        &request.worker_id,
+        request.task_id,
+        request.fencing_token,
+        now,
+    )
+    .await
+    .map_err(internal)?;
+    let held = match held {
+        Ok(held) => held,
+        Err(status) => {
+            tx.commit().await.map_err(internal)?;
+            shared.publish(batch);
+            shared.wake_workers();
+            return Err(status);
+        }
+    };
+    if held.cancelled {
+        return Ok(false);
+    }
+    let task = held.task;
+    let reason = if request.reason.is_empty() {
+        "failed without a reason".to_string()
+    } else {
+        request.reason.chars().take(4000).collect()
+    };
+    let requeue = request.retryable && task.attempt < task.max_attempts;
+    if requeue {
+        requeue_task(&mut tx, &mut batch, &task, &reason)
+            .await
+            .map_err(internal)?;
+    } else {
+        fail_task(&mut tx, &mut batch, &task, &reason)
+            .await
+            .map_err(internal)?;
+    }
+    tx.commit().await.map_err(internal)?;
+    shared.publish(batch);
+    if requeue {
+        shared.wake_workers();
+    }
+    metrics::counter!("stylenerf_tasks_finished_total", "stage" => task.stage,
+        "outcome" => if requeue { "retried" } else { "failed" })
+    .increment(1);
+    Ok(requeue)
+}
+
+/// Puts a task back in the queue after a failed attempt.
+async fn requeue_task(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    task: &TaskRow,
+    reason: &str,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(
+        "UPDATE tasks SET state = 'ready', ready_at = ?, lease_expires_at = 0, error = ? \
+         WHERE id = ?",
+    )
+    .bind(now_ms())
+    .bind(reason)
+    .bind(task.id)
+    .execute(&mut *conn)
+    .await?;
+    let message = format!("requeued after attempt {}: {reason}", task.attempt);
+    batch
+        .push(
+            conn,
+            NewEvent::task(
+                &task.job_id,
+                task.id,
+                &task.stage,
+                task_state::READY,
+                task.attempt,
+                &message,
+            ),
+        )
+        .await
+}
+
+/// Fails a task for good. A failed stage fails its job (cancelling the rest); a failed extra
+/// render only settles the job.
+async fn fail_task(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    task: &TaskRow,
+    reason: &str,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(
+        "UPDATE tasks SET state = 'failed', finished_at = ?, lease_expires_at = 0, error = ? \
+         WHERE id = ?",
+    )
+    .bind(now_ms())
+    .bind(reason)
+    .bind(task.id)
+    .execute(&mut *conn)
+    .await?;
+    batch
+        .push(
+            conn,
+            NewEvent::task(
+                &task.job_id,
+                task.id,
+                &task.stage,
+                task_state::FAILED,
+                task.attempt,
+                reason,
+            ),
+        )
+        .await?;
+    if task.core {
+        let error = format!("{} failed: {reason}", task.stage);
+        cancel_open_tasks(conn, batch, &task.job_id, &error).await?;
+        set_job_state(conn, batch, &task.job_id, job_state::FAILED, Some(&error)).await
+    } else {
+        settle_job(conn, batch, &task.job_id).await
+    }
+}
+
+/// Handles one expired lease: requeue with attempt + 1 or, out of attempts, fail.
+async fn expire_task(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    task: &TaskRow,
+) -> Result<(), sqlx::Error> {
+    metrics::counter!("stylenerf_lease_expiries_total").increment(1);
+    let reason = format!(
+        "lease of worker {} expired (attempt {} of {})",
+        task.worker_id, task.attempt, task.max_attempts
+    );
+    if task.attempt < task.max_attempts {
+        requeue_task(conn, batch, task, &reason).await
+    } else {
+        fail_task(conn, batch, task, &reason).await
+    }
+}
+
+/// Requeues or fails every task whose lease expired before `now`. Returns whether any task
+/// went back to the queue.
+pub async fn expire_leases(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    now: i64,
+) -> Result<bool, sqlx::Error> {
+    let expired: Vec<TaskRow> =
+        sqlx::query_as("SELECT * FROM tasks WHERE state = 'leased' AND lease_expires_at < ?")
+            .bind(now)
+            .fetch_all(&mut *conn)
+            .await?;
+    for task in &expired {
+        expire_task(conn, batch, task).await?;
+    }
+    Ok(!expired.is_empty())
+}
+
+/// The reaper's periodic pass.
+pub async fn reap(shared: &Shared) -> Result<(), sqlx::Error> {
+    let mut batch = EventBatch::default();
+    let mut tx = shared.db.write.begin().await?;
+    let requeued = expire_leases(&mut tx, &mut batch, now_ms()).await?;
+    tx.commit().await?;
+    shared.publish(batch);
+    if requeued {
+        shared.wake_workers();
+    }
+    Ok(())
+}
+
+/// Makes the pending dependents of a succeeded task ready when all their dependencies
+/// succeeded. Returns whether any became ready.
+async fn promote_dependents(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    task: &TaskRow,
+) -> Result<bool, sqlx::Error> {
+    let promoted: Vec<(i64, String)> = sqlx::query_as(
+        "UPDATE tasks SET state = 'ready', ready_at = ? WHERE state = 'pending' \
+         AND id IN (SELECT task_id FROM task_deps WHERE depends_on = ?) \
+         AND NOT EXISTS (SELECT 1 FROM task_deps d JOIN tasks p ON p.id = d.depends_on \
+                         WHERE d.task_id = tasks.id AND p.state != 'succeeded') \
+         RETURNING id, stage",
+    )
+    .bind(now_ms())
+    .bind(task.id)
+    .fetch_all(&mut *conn)
+    .await?;
+    for (id, stage) in &promoted {
+        batch
+            .push(
+                conn,
+                NewEvent::task(
+                    &task.job_id,
+                    *id,
+                    stage,
+                    task_state::READY,
+                    0,
+                    "inputs ready",
+                ),
+            )
+            .await?;
+    }
+    Ok(!promoted.is_empty())
+}
+
+/// Marks an active job succeeded once none of its tasks is pending, ready or leased.
+async fn settle_job(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    job_id: &str,
+) -> Result<(), sqlx::Error> {
+    let (state, open): (String, i64) = sqlx::query_as(
+        "SELECT state, (SELECT COUNT(*) FROM tasks WHERE job_id = jobs.id \
+         AND state IN ('pending', 'ready', 'leased')) FROM jobs WHERE id = ?",
+    )
+    .bind(job_id)
+    .fetch_one(&mut *conn)
+    .await?;
+    if open == 0 && !job_state::is_terminal(&state) {
+        set_job_state(conn, batch, job_id, job_state::SUCCEEDED, None).await?;
+    }
+    Ok(())
+}
+
+/// Refreshes the scheduling gauges (queue depth and running tasks per stage, live workers).
+pub async fn refresh_gauges(shared: &Shared) -> Result<(), sqlx::Error> {
+    let counts: Vec<(String, String, i64)> = sqlx::query_as(
+        "SELECT stage, state, COUNT(*) FROM tasks WHERE state IN ('ready', 'leased') \
+         GROUP BY stage, state",
+    )
+    .fetch_all(&shared.db.read)
+    .await?;
+    for stage in Stage::ALL {
+        let count = |state: &str| {
+            counts
+                .iter()
+                .find(|(s, st, _)| s == stage.as_str() && st == state)
+                .map_or(0, |(_, _, n)| *n) as f64
+        };
+        metrics::gauge!("stylenerf_queue_depth", "stage" => stage.as_str())
+            .set(count(task_state::READY));
+        metrics::gauge!("stylenerf_tasks_running", "stage" => stage.as_str())
+            .set(count(task_state::LEASED));
+    }
+    let since = now_ms() - shared.config.worker_timeout.as_millis() as i64;
+    // Live: asked for work recently, or holds a lease its heartbeats keep current.
+    let live: i64 = sqlx::query_scalar(
+        "SELECT COUNT(*) FROM workers w WHERE last_seen_at >= ? OR EXISTS \
+         (SELECT 1 FROM tasks t WHERE t.worker_id = w.id AND t.state = 'leased' \
+          AND t.lease_expires_at >= ?)",
+    )
+    .bind(since)
+    .bind(now_ms())
+    .fetch_one(&shared.db.read)
+    .await?;
+    metrics::gauge!("stylenerf_live_workers").set(live as f64);
+    Ok(())
+}

@@ -1,0 +1,40 @@
+//! The state shared by the services and background tasks of one coordinator: database,
+//! storage, configuration, the live event feed, the "tasks became ready" notifier for
+//! long-polling workers, and the shutdown signal.
+
+use crate::config::CoordinatorConfig;
+use crate::db::Db;
+use crate::events::EventBatch;
+use crate::storage::Storage;
+use std::sync::atomic::AtomicI64;
+use stylenerf_proto::v1 as pb;
+use tokio::sync::{broadcast, watch, Notify};
+
+pub struct Shared {
+    pub db: Db,
+    pub storage: Storage,
+    pub config: CoordinatorConfig,
+    /// Every committed event, for live `WatchJob` streams.
+    pub events: broadcast::Sender<pb::Event>,
+    /// Woken when tasks become ready, so waiting `LeaseTask` calls retry at once.
+    pub ready: Notify,
+    /// Becomes `true` when the coordinator shuts down.
+    pub shutdown: watch::Receiver<bool>,
+    /// When `LeaseTask` next looks for expired leases itself (epoch ms).
+    pub next_expiry_check: AtomicI64,
+}
+
+impl Shared {
+    /// Publishes the events of a committed transaction.
+    pub fn publish(&self, batch: EventBatch) {
+        for event in batch.events {
+            // No receiver is fine: nobody is watching.
+            let _ = self.events.send(event);
+        }
+    }
+
+    /// Wakes every waiting `LeaseTask` long-poll.
+    pub fn wake_workers(&self) {
+        self.ready.notify_waiters();
+    }
+}

@@ -1,0 +1,295 @@
+//! The artifact store: an `object_store` opened from a directory or URL, object key rules
+//! (everything a caller names must be a clean relative key), streamed reads and writes with
+//! SHA-256 verification, and listings.
+
+use crate::errors::{internal, invalid};
+use bytes::Bytes;
+use futures::{Stream, StreamExt, TryStreamExt};
+use object_store::path::Path as ObjectPath;
+use object_store::{GetOptions, GetRange, ObjectStore, ObjectStoreExt, WriteMultipart};
+use sha2::{Digest, Sha256};
+use std::sync::Arc;
+use stylenerf_proto::v1 as pb;
+use tokio::io::AsyncReadExt;
+use tonic::Status;
+
+/// Content of streamed reads is sent in chunks of this size.
+pub const CHUNK_BYTES: usize = 1 << 20;
+
+/// The coordinator's object store.
+#[derive(Clone, Debug)]
+pub struct Storage {
+    store: Arc<dyn ObjectStore>,
+    /// The normalised URL workers with direct access can open.
+    url: String,
+}
+
+impl Storage {
+    /// Opens a local directory (a plain path or `file://` URL; created if missing) or, with the
+    /// `cloud` feature, an `s3://`, `gs://` or `az://` URL configured from the environment.
+    pub fn open(location: &str) -> anyhow::Result<Storage> {
+        let local_dir = match location.strip_prefix("file://") {
+            Some(path) => Some(std::path::PathBuf::from(path)),
+            None if !location.contains("://") => Some(std::path::PathBuf::from(location)),
+            None => None,
+        };
+        if let Some(dir) = local_dir {
+            std::fs::create_dir_all(&dir).map_err(|e| {
+                anyhow::anyhow!("creating storage directory {}: {e}", dir.display())
+            })?;
+            let dir = dir.canonicalize()?;
+            let store = object_store::local::LocalFileSystem::new_with_prefix(&dir)?
+                .with_automatic_cleanup(true);
+            return Ok(Storage {
+                store: Arc::new(store),
+                url: format!("file://{}", dir.display()),
+            });
+        }
+        let url = url::Url::parse(location)
+            .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
+        let options = std::env::vars().map(|(k, v)| (k.to_ascii_lowercase(), v));
+        let (store, prefix) = object_store::parse_url_opts(&url, options).map_err(|e| {
+            anyhow::anyhow!(
+                "storage URL {location:?}: {e} (cloud URLs need a build with the `cloud` feature)"
+            )
+        })?;
+        let store: Arc<dyn ObjectStore> = if prefix.as_ref().is_empty() {
+            Arc::from(store)
+        } else {
+            Arc::new(object_store::prefix::PrefixStore::new(store, prefix))
+        };
+        Ok(Storage {
+            store,
+            url: location.trim_end_matches('/').to_string(),
+        })
+    }
+
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// Stores a local file under `key`, streaming it in parts.
+    pub async fn put_file(&self, key: &str, file: &std::path::Path) -> anyhow::Result<()> {
+        let mut source = tokio::fs::File::open(file).await?;
+        let mut writer =
+            WriteMultipart::new(self.store.put_multipart(&ObjectPath::from(key)).await?);
+        let mut buf = vec![0u8; CHUNK_BYTES];
+        loop {
+            let n = source.read(&mut buf).await?;
+            if n == 0 {
+                break;
+            }
+            writer.wait_for_capacity(4).await?;
+            writer.write(&buf[..n]);
+        }
+        writer.finish().await?;
+        Ok(())
+    }
+
+    /// Copies an object (inputs of a job are copied from its uploads).
+    pub async fn copy(&self, from: &str, to: &str) -> anyhow::Result<()> {
+        self.store
+            .copy(&ObjectPath::from(from), &ObjectPath::from(to))
+            .await?;
+        Ok(())
+    }
+
+    /// Reads a whole object into a local file (for validating staged datasets).
+    pub async fn get_to_file(&self, key: &str, file: &std::path::Path) -> Result<u64, Status> {
+        let result = self
+            .store
+            .get(&ObjectPath::from(key))
+            .await
+            .map_err(|e| storage_status(key, e))?;
+        let mut out = tokio::fs::File::create(file).await.map_err(internal)?;
+        let mut stream = result.into_stream();
+        let mut size = 0u64;
+        while let Some(chunk) = stream
+            .try_next()
+            .await
+            .map_err(|e| storage_status(key, e))?
+        {
+            size += chunk.len() as u64;
+            tokio::io::AsyncWriteExt::write_all(&mut out, &chunk)
+                .await
+                .map_err(internal)?;
+        }
+        Ok(size)
+    }
+
+    /// Size of an object.
+    pub async fn size(&self, key: &str) -> Result<u64, Status> {
+        let meta = self
+            .store
+            .head(&ObjectPath::from(key))
+            .await
+            .map_err(|e| storage_status(key, e))?;
+        Ok(meta.size)
+    }
+
+    /// Streams an object from `offset` in chunks of at most `CHUNK_BYTES`.
+    pub async fn get_stream(
+        &self,
+        key: &str,
+        offset: u64,
+    ) -> Result<impl Stream<Item = Result<pb::ObjectChunk, Status>> + Send + 'static, Status> {
+        let options = GetOptions {
+            range: (offset > 0).then_some(GetRange::Offset(offset)),
+            ..GetOptions::default()
+        };
+        let result = self
+            .store
+            .get_opts(&ObjectPath::from(key), options)
+            .await
+            .map_err(|e| storage_status(key, e))?;
+        let total_size = result.meta.size;
+        let key = key.to_string();
+        let mut position = offset;
+        let mut first = true;
+        let stream = result
+            .into_stream()
+            .map_err({
+                let key = key.clone();
+                move |e| storage_status(&key, e)
+            })
+            .map_ok(move |bytes: Bytes| {
+                let pieces: Vec<Bytes> = (0..bytes.len())
+                    .step_by(CHUNK_BYTES)
+                    .map(|start| bytes.slice(start..(start + CHUNK_BYTES).min(bytes.len())))
+                    .collect();
+                futures::stream::iter(pieces.into_iter().map(Ok::<_, Status>))
+            })
+            .try_flatten()
+            .map_ok(move |data| {
+                let chunk = pb::ObjectChunk {
+                    key: if first { key.clone() } else { String::new() },
+                    offset: position,
+                    total_size: if first { total_size } else { 0 },
+                    data: data.to_vec(),
+                };
+                first = false;
+                position += data.len() as u64;
+                chunk
+            });
+        Ok(stream)
+    }
+
+    /// Objects under `prefix` (a key prefix ending in `/`, or empty), sorted by key.
+    pub async fn list(&self, prefix: &str) -> Result<Vec<(String, u64)>, Status> {
+        let dir = prefix.trim_end_matches('/');
+        let path = (!dir.is_empty()).then(|| ObjectPath::from(dir));
+        let mut out: Vec<(String, u64)> = self
+            .store
+            .list(path.as_ref())
+            .map_ok(|meta| (meta.location.to_string(), meta.size))
+            .try_collect()
+            .await
+            .map_err(internal)?;
+        out.retain(|(key, _)| key.starts_with(prefix));
+        out.sort();
+        Ok(out)
+    }
+
+    /// Writes an object from a stream of chunks, verifying its declared size and SHA-256. The
+    /// object only appears if everything matched.
+    pub async fn put_verified<S>(
+        &self,
+        key: &str,
+        size: u64,
+        sha256: &str,
+        mut chunks: S,
+    ) -> Result<(), Status>
+    where
+        S: Stream<Item = Result<Vec<u8>, Status>> + Unpin,
+    {
+        let upload = self
+            .store
+            .put_multipart(&ObjectPath::from(key))
+            .await
+            .map_err(internal)?;
+        let mut writer = WriteMultipart::new(upload);
+        let mut hasher = Sha256::new();
+        let mut received = 0u64;
+        let outcome: Result<(), Status> = async {
+            while let Some(chunk) = chunks.next().await {
+                let chunk = chunk?;
+                received += chunk.len() as u64;
+                if received > size {
+                    return Err(invalid(
+                        "data",
+                        format!("more data than the declared size of {size} bytes"),
+                    ));
+                }
+                hasher.update(&chunk);
+                writer.wait_for_capacity(4).await.map_err(internal)?;
+                writer.write(&chunk);
+            }
+            if received != size {
+                return Err(invalid(
+                    "data",
+                    format!("stream ended after {received} of {size} bytes"),
+                ));
+            }
+            let actual = hex::encode(hasher.finalize());
+            if actual != sha256 {
+                return Err(invalid(
+                    "header.sha256",
+                    format!("checksum mismatch: the data has SHA-256 {actual}"),
+                ));
+            }
+            Ok(())
+        }
+        .await;
+        match outcome {
+            Ok(()) => writer.finish().await.map(|_| ()).map_err(internal),
+            Err(status) => {
+                let _ = writer.abort().await;
+                Err(status)
+            }
+        }
+    }
+}
+
+fn storage_status(key: &str, err: object_store::Error) -> Status {
+    match err {
+        object_store::Error::NotFound { .. } => {
+            Status::not_found(format!("object {key:?} not found"))
+        }
+        e => internal(e),
+    }
+}
+
+/// Checks that a caller-supplied object key is clean: relative, `/`-separated, no empty, `.`
+/// or `..` segments, no control characters, at most 1024 bytes.
+pub fn check_key(field: &str, key: &str) -> Result<(), Status> {
+    let why = if key.is_empty() {
+        Some("must not be empty")
+    } else if key.len() > 1024 {
+        Some("longer than 1024 bytes")
+    } else if key.starts_with('/') {
+        Some("must be relative (no leading `/`)")
+    } else if key.chars().any(|c| c.is_control() || c == '\\') {
+        Some("control characters and backslashes are not allowed")
+    } else if key
+        .trim_end_matches('/')
+        .split('/')
+        .any(|seg| seg.is_empty() || seg == "." || seg == "..")
+    {
+        Some("empty, `.` and `..` segments are not allowed")
+    } else {
+        None
+    };
+    match why {
+        Some(why) => Err(invalid(field, format!("object key {key:?}: {why}"))),
+        None => Ok(()),
+    }
+}
+
+/// Checks a lower-case hex SHA-256.
+pub fn check_sha256(field: &str, sha: &str) -> Result<(), Status> {
+    if sha.len() == 64 && sha.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f')) {
+        Ok(())
+    } else {
+        Err(invalid(field, "must be 64 lower-case hex digits (SHA-256)"))
+    }
+}

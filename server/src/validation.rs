@@ -1,0 +1,469 @@
+//! Submission-time validation of job inputs without the engine: dataset tar archives (member
+//! paths, types, sizes and counts; a parseable `transforms.json`, `transforms_train.json` or
+//! `poses_bounds.npy` whose images are present) and style images (decode within limits).
+//! Errors are human-readable descriptions; callers attach the field name.
+
+use crate::config::Limits;
+use std::collections::HashSet;
+use std::io::Read;
+use std::path::{Component, Path};
+
+/// What a valid dataset archive holds.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DatasetSummary {
+    /// `nerfstudio`, `blender` or `llff`.
+    pub format: &'static str,
+    /// Path of the scene file inside the archive.
+    pub scene_file: String,
+    pub frames: usize,
+    pub members: u64,
+}
+
+impl std::fmt::Display for DatasetSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} scene ({}): {} frames, {} archive members",
+            self.format, self.scene_file, self.frames, self.members
+        )
+    }
+}
+
+const SCENE_FILES: [(&str, &str); 3] = [
+    ("transforms.json", "nerfstudio"),
+    ("transforms_train.json", "blender"),
+    ("poses_bounds.npy", "llff"),
+];
+const IMAGE_EXTENSIONS: [&str; 7] = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG", "webp"];
+/// Largest scene file read into memory.
+const MAX_SCENE_FILE_BYTES: u64 = 64 << 20;
+
+/// Checks a dataset tar archive read from `reader`.
+pub fn validate_dataset_archive(
+    reader: impl Read,
+    limits: &Limits,
+) -> Result<DatasetSummary, String> {
+    let mut archive = tar::Archive::new(reader);
+    let entries = archive
+        .entries()
+        .map_err(|e| format!("not a tar archive: {e}"))?;
+    let mut members: HashSet<String> = HashSet::new();
+    let mut scene_files: Vec<(String, Vec<u8>)> = Vec::new();
+    let mut count = 0u64;
+    let mut total = 0u64;
+    for entry in entries {
+        let mut entry = entry.map_err(|e| format!("corrupt tar archive: {e}"))?;
+        let kind = entry.header().entry_type();
+        if kind.is_pax_global_extensions() {
+            continue;
+        }
+        let raw_path = String::from_utf8_lossy(&entry.path_bytes()).into_owned();
+        let path = normalize_member_path(&raw_path)
+            .map_err(|why| format!("member {raw_path:?}: {why}"))?;
+        if !(kind.is_file() || kind.is_dir() || kind.is_contiguous()) {
+            return Err(format!(
+                "member {raw_path:?}: only regular files and directories are allowed, not {}",
+                describe_entry_type(kind)
+            ));
+        }
+        count += 1;
+        if count > limits.max_archive_members {
+            return Err(format!(
+                "more than {} archive members",
+                limits.max_archive_members
+            ));
+        }
+        let size = entry.size();
+        if size > limits.max_member_bytes {
+            return Err(format!(
+                "member {raw_path:?} is {size} bytes, more than the limit of {}",
+                limits.max_member_bytes
+            ));
+        }
+        total += size;
+        if total > limits.max_dataset_bytes {
+            return Err(format!(
+                "members add up to more than {} bytes",
+                limits.max_dataset_bytes
+            ));
+        }
+        let file_name = path.rsplit('/').next().unwrap_or("");
+        if kind.is_file() && SCENE_FILES.iter().any(|(name, _)| *name == file_name) {
+            if size > MAX_SCENE_FILE_BYTES {
+                return Err(format!("scene file {raw_path:?} is larger than 64 MiB"));
+            }
+            let mut content = Vec::with_capacity(size as usize);
+            entry
+                .read_to_end(&mut content)
+                .map_err(|e| format!("member {raw_path:?}: {e}"))?;
+            scene_files.push((path.clone(), content));
+        }
+        members.insert(path);
+    }
+    // The shallowest scene file wins; at equal depth, in the order of SCENE_FILES.
+    let rank = |path: &str| {
+        let depth = path.matches('/').count();
+        let name = path.rsplit('/').next().unwrap_or("");
+        let order = SCENE_FILES
+            .iter()
+            .position(|(n, _)| *n == name)
+            .unwrap_or(0);
+        (depth, order)
+    };
+    scene_files.sort_by_key(|(path, _)| rank(path));
+    let (scene_path, content) = scene_files.into_iter().next().ok_or_else(|| {
+        "no scene file: expected transforms.json, transforms_train.json or poses_bounds.npy"
+            .to_string()
+    })?;
+    let dir = scene_path
+        .rsplit_once('/')
+        .map(|(d, _)| d.to_string())
+        .unwrap_or_default();
+    let name = scene_path.rsplit('/').next().unwrap_or("");
+    let format = SCENE_FILES
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, f)| *f)
+        .unwrap_or("nerfstudio");
+    let frames = if format == "llff" {
+        check_poses_bounds(&content, &dir, &members, limits)
+    } else {
+        check_transforms(&content, &dir, &members, limits)
+    }
+    .map_err(|why| format!("{scene_path}: {why}"))?;
+    Ok(DatasetSummary {
+        format,
+        scene_file: scene_path,
+        frames,
+        members: count,
+    })
+}
+
+/// A member path made relative and `/`-separated, or why it is not acceptable.
+fn normalize_member_path(raw: &str) -> Result<String, &'static str> {
+    if raw.contains('\\') {
+        return Err("backslashes are not allowed in paths");
+    }
+    let mut parts = Vec::new();
+    for component in Path::new(raw).components() {
+        match component {
+            Component::Normal(part) => parts.push(part.to_string_lossy().into_owned()),
+            Component::CurDir => {}
+            Component::ParentDir => return Err("`..` is not allowed in paths"),
+            Component::RootDir | Component::Prefix(_) => {
+                return Err("absolute paths are not allowed")
+            }
+        }
+    }
+    if parts.is_empty() {
+        return Err("empty path");
+    }
+    Ok(parts.join("/"))
+}
+
+fn describe_entry_type(kind: tar::EntryType) -> &'static str {
+    if kind.is_symlink() {
+        "a symbolic link"
+    } else if kind.is_hard_link() {
+        "a hard link"
+    } else if kind.is_character_special() || kind.is_block_special() {
+        "a device"
+    } else if kind.is_fifo() {
+        "a FIFO"
+    } else {
+        "this entry type"
+    }
+}
+
+/// Resolves `file_path` of a frame (relative to the scene file's directory) to an archive
+/// member, trying the usual image extensions when it has none that matches.
+fn image_present(dir: &str, file_path: &str, members: &HashSet<String>) -> bool {
+    let joined = if dir.is_empty() {
+        file_path.to_string()
+    } else {
+        format!("{dir}/{file_path}")
+    };
+    let mut parts: Vec<&str> = Vec::new();
+    for part in joined.split('/') {
+        match part {
+            "" | "." => {}
+            ".." => {
+                if parts.pop().is_none() {
+                    return false;
+                }
+            }
+            p => parts.push(p),
+        }
+    }
+    let path = parts.join("/");
+    members.contains(&path)
+        || IMAGE_EXTENSIONS
+            .iter()
+            .any(|ext| members.contains(&format!("{path}.{ext}")))
+}
+
+fn check_transforms(
+    content: &[u8],
+    dir: &str,
+    members: &HashSet<String>,
+    limits: &Limits,
+) -> Result<usize, String> {
+    let value: serde_json::Value =
+        serde_json::from_slice(content).map_err(|e| format!("not valid JSON: {e}"))?;
+    let obj = value.as_object().ok_or("must be a JSON object")?;
+    let frames = obj
+        .get("frames")
+        .and_then(|f| f.as_array())
+        .ok_or("has no `frames` array")?;
+    if frames.is_empty() {
+        return Err("`frames` is empty".into());
+    }
+    if frames.len() as u64 > limits.max_frames {
+        return Err(format!(
+            "{} frames, more than the limit of {}",
+            frames.len(),
+            limits.max_frames
+        ));
+    }
+    let has_intrinsics = |o: &serde_json::Map<String, serde_json::Value>| {
+        ["camera_angle_x", "fl_x"]
+            .iter()
+            .any(|k| o.get(*k).is_some_and(|v| v.is_number()))
+    };
+    for (i, frame) in frames.iter().enumerate() {
+        let frame = frame
+            .as_object()
+            .ok_or_else(|| format!("frames[{i}] is not an object"))?;
+        let matrix_ok = frame
+            .get("transform_matrix")
+            .and_then(|m| m.as_array())
+            .is_some_and(|rows| {
+                rows.len() == 4
+                    && rows.iter().all(|row| {
+                        row.as_array().is_some_and(|r| {
+                            r.len() == 4 && r.iter().all(|x| x.as_f64().is_some_and(f64::is_finite))
+                        })
+                    })
+            });
+        if !matrix_ok {
+            return Err(format!(
+                "frames[{i}].transform_matrix must be a 4x4 matrix of numbers"
+            ));
+        }
+        if !has_intrinsics(obj) && !has_intrinsics(frame) {
+            return Err(format!(
+                "no camera intrinsics for frames[{i}] (camera_angle_x or fl_x)"
+            ));
+        }
+        let file_path = frame
+            .get("file_path")
+            .and_then(|p| p.as_str())
+            .ok_or_else(|| format!("frames[{i}].file_path is missing"))?;
+        if !image_present(dir, file_path, members) {
+            return Err(format!(
+                "frames[{i}].file_path {file_path:?} is not in the archive"
+            ));
+        }
+    }
+    Ok(frames.len())
+}
+
+/// Checks an LLFF `poses_bounds.npy` (float N×17) and that `images/` next to it holds at least
+/// N images.
+fn check_poses_bounds(
+    content: &[u8],
+    dir: &str,
+    members: &HashSet<String>,
+    limits: &Limits,
+) -> Result<usize, String> {
+    if content.len() < 10 || &content[..6] != b"\x93NUMPY" {
+        return Err("not a .npy file".into());
+    }
+    let (header_start, header_len) = match content[6] {
+        1 => (10, u16::from_le_bytes([content[8], content[9]]) as usize),
+        2 | 3 if content.len() >= 12 => (
+            12,
+            u32::from_le_bytes([content[8], content[9], content[10], content[11]]) as usize,
+        ),
+        v => return Err(format!("unsupported .npy version {v}")),
+    };
+    let header = content
+        .get(header_start..header_start + header_len)
+        .and_then(|h| std::str::from_utf8(h).ok())
+        .ok_or("truncated .npy header")?;
+    let item_size = if header.contains("'<f8'") {
+        8
+    } else if header.contains("'<f4'") {
+        4
+    } else {
+        return Err("dtype must be little-endian float32 or float64".into());
+    };
+    if header.contains("'fortran_order': True") {
+        return Err("Fortran-ordered arrays are not supported".into());
+    }
+    let shape = header
+        .split("'shape':")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .map(|s| s.trim().trim_start_matches('(').to_string())
+        .ok_or("no shape in the .npy header")?;
+    let dims: Vec<usize> = shape
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| s.parse::<usize>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("bad shape ({shape})"))?;
+    let n = match dims.as_slice() {
+        [n, 17] if *n > 0 => *n,
+        _ => return Err(format!("shape must be (N, 17), not ({shape})")),
+    };
+    if n as u64 > limits.max_frames {
+        return Err(format!(
+            "{n} poses, more than the limit of {}",
+            limits.max_frames
+        ));
+    }
+    if content.len() < header_start + header_len + n * 17 * item_size {
+        return Err("truncated .npy data".into());
+    }
+    let images_dir = if dir.is_empty() {
+        "images/".to_string()
+    } else {
+        format!("{dir}/images/")
+    };
+    let images = members
+        .iter()
+        .filter(|m| {
+            m.starts_with(&images_dir)
+                && m.rsplit_once('.')
+                    .is_some_and(|(_, ext)| IMAGE_EXTENSIONS.contains(&ext))
+        })
+        .count();
+    if images < n {
+        return Err(format!("{n} poses but {images} images in {images_dir}"));
+    }
+    Ok(n)
+}
+
+/// What a valid style image is.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ImageSummary {
+    pub format: &'static str,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl ImageSummary {
+    /// File extension for the stored copy.
+    pub fn extension(&self) -> &'static str {
+        self.format
+    }
+}
+
+impl std::fmt::Display for ImageSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} image {}x{}", self.format, self.width, self.height)
+    }
+}
+
+/// Checks that `bytes` is a PNG, JPEG, GIF or WebP image that decodes within the limits.
+pub fn validate_style_image(bytes: &[u8], limits: &Limits) -> Result<ImageSummary, String> {
+    let format = image::guess_format(bytes)
+        .map_err(|_| "not an image (PNG, JPEG, GIF or WebP expected)".to_string())?;
+    let name = match format {
+        image::ImageFormat::Png => "png",
+        image::ImageFormat::Jpeg => "jpg",
+        image::ImageFormat::Gif => "gif",
+        image::ImageFormat::WebP => "webp",
+        other => return Err(format!("unsupported image format {other:?}")),
+    };
+    let mut image_limits = image::Limits::default();
+    image_limits.max_image_width = Some(limits.max_style_dimension);
+    image_limits.max_image_height = Some(limits.max_style_dimension);
+    let mut reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
+    reader.limits(image_limits);
+    let decoded = reader.decode().map_err(|e| match e {
+        image::ImageError::Limits(_) => format!(
+            "image is larger than {0}x{0} pixels",
+            limits.max_style_dimension
+        ),
+        e => format!("cannot decode the {name} image: {e}"),
+    })?;
+    Ok(ImageSummary {
+        format: name,
+        width: decoded.width(),
+        height: decoded.height(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn archive(entries: &[(&str, &[u8])]) -> Vec<u8> {
+        let mut builder = tar::Builder::new(Vec::new());
+        for (path, data) in entries {
+            let mut header = tar::Header::new_gnu();
+            header.set_size(data.len() as u64);
+            header.set_mode(0o644);
+            header.set_cksum();
+            builder.append_data(&mut header, path, *data).unwrap();
+        }
+        builder.into_inner().unwrap()
+    }
+
+    const TRANSFORMS: &[u8] = br#"{"camera_angle_x": 0.7, "frames": [
+        {"file_path": "./train/r_0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}
+    ]}"#;
+
+    #[test]
+    fn accepts_a_blender_scene() {
+        let tar = archive(&[
+            ("scene/transforms_train.json", TRANSFORMS),
+            ("scene/train/r_0.png", b"x"),
+        ]);
+        let summary = validate_dataset_archive(&tar[..], &Limits::default()).unwrap();
+        assert_eq!(summary.format, "blender");
+        assert_eq!(summary.frames, 1);
+    }
+
+    #[test]
+    fn rejects_missing_images_and_scene_files() {
+        let tar = archive(&[("transforms.json", TRANSFORMS)]);
+        let err = validate_dataset_archive(&tar[..], &Limits::default()).unwrap_err();
+        assert!(err.contains("not in the archive"), "{err}");
+        let tar = archive(&[("a.png", b"x")]);
+        let err = validate_dataset_archive(&tar[..], &Limits::default()).unwrap_err();
+        assert!(err.contains("no scene file"), "{err}");
+    }
+
+    #[test]
+    fn normalizes_member_paths() {
+        assert_eq!(normalize_member_path("./a/b.png").unwrap(), "a/b.png");
+        assert!(normalize_member_path("/etc/passwd").is_err());
+        assert!(normalize_member_path("a/../../b").is_err());
+    }
+
+    #[test]
+    fn checks_llff_poses() {
+        let header = "{'descr': '<f8', 'fortran_order': False, 'shape': (2, 17), }";
+        let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+        npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        npy.extend_from_slice(header.as_bytes());
+        npy.extend_from_slice(&[0u8; 2 * 17 * 8]);
+        let ok = archive(&[
+            ("poses_bounds.npy", &npy),
+            ("images/a.jpg", b"x"),
+            ("images/b.jpg", b"x"),
+        ]);
+        assert_eq!(
+            validate_dataset_archive(&ok[..], &Limits::default())
+                .unwrap()
+                .frames,
+            2
+        );
+        let short = archive(&[("poses_bounds.npy", &npy), ("images/a.jpg", b"x")]);
+        assert!(validate_dataset_archive(&short[..], &Limits::default()).is_err());
+    }
+}

@@ -1,0 +1,269 @@
+//! A job through all five stages with a fake worker, watched with replay; artifacts listed and
+//! downloaded; a further render; idempotent creation; capability matching; health.
+
+use crate::support::*;
+use futures::StreamExt;
+use stylenerf_server::proto::v1 as pb;
+
+const STAGES: [pb::Stage; 5] = [
+    pb::Stage::NerfPretrain,
+    pb::Stage::RenderViews,
+    pb::Stage::DecoderPretrain,
+    pb::Stage::MutualLearning,
+    pb::Stage::RenderStylized,
+];
+
+#[tokio::test]
+async fn job_runs_through_all_stages_and_renders_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let job = create_job(&mut client).await;
+    assert_eq!(job.state(), pb::JobState::Queued);
+    assert_eq!(job.tasks.len(), 5);
+    assert_eq!(job.style_keys.len(), 2);
+    assert_eq!(job.dataset_key, format!("jobs/{}/inputs/scene.tar", job.id));
+
+    let mut watch = client
+        .watch_job(pb::WatchJobRequest {
+            job_id: job.id.clone(),
+            after_seq: 0,
+            skip_progress: false,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+
+    let mut worker = FakeWorker::register(&server, "cpu", 0).await;
+    let mut outputs = Vec::new();
+    for (i, stage) in STAGES.iter().enumerate() {
+        let task = worker.run_one().await;
+        assert_eq!(task.stage(), *stage, "stage {i} in DAG order");
+        assert_eq!(task.attempt, 1);
+        assert_eq!(task.inputs.len(), i, "upstream outputs handed over");
+        assert_eq!(task.style_keys.len(), 2);
+        assert!(task.object_store_url.starts_with("file://"));
+        let config: serde_json::Value = serde_json::from_str(&task.config_json).unwrap();
+        assert_eq!(config["preset"], "tiny");
+        outputs.push(task.output_prefix.clone());
+    }
+
+    let done = get_job(&mut client, &job.id).await;
+    assert_eq!(done.state(), pb::JobState::Succeeded);
+    assert!(done
+        .tasks
+        .iter()
+        .all(|t| t.state() == pb::TaskState::Succeeded));
+    assert_eq!(
+        done.tasks[0].progress.as_ref().unwrap().metrics["psnr"],
+        31.0
+    );
+
+    // The watch stream saw the whole history and ended with the job's success.
+    let events: Vec<pb::Event> = watch.by_ref().map(|e| e.unwrap()).collect().await;
+    assert_eq!(events[0].kind(), pb::EventKind::JobCreated);
+    assert!(events.windows(2).all(|w| w[0].seq < w[1].seq));
+    assert!(
+        events
+            .iter()
+            .any(|e| e.kind() == pb::EventKind::TaskProgress
+                && e.progress.as_ref().unwrap().step == 5)
+    );
+    let last = events.last().unwrap();
+    assert_eq!(last.kind(), pb::EventKind::JobState);
+    assert_eq!(last.job_state(), pb::JobState::Succeeded);
+
+    // Replay from the middle returns exactly the later events.
+    let middle = events[events.len() / 2].seq;
+    let replayed: Vec<pb::Event> = client
+        .watch_job(pb::WatchJobRequest {
+            job_id: job.id.clone(),
+            after_seq: middle,
+            skip_progress: true,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .map(|e| e.unwrap())
+        .collect()
+        .await;
+    let expected: Vec<u64> = events
+        .iter()
+        .filter(|e| e.seq > middle && e.kind() != pb::EventKind::TaskProgress)
+        .map(|e| e.seq)
+        .collect();
+    assert_eq!(replayed.iter().map(|e| e.seq).collect::<Vec<_>>(), expected);
+
+    // Artifacts: inputs and every stage's output, downloadable.
+    let listed = client
+        .list_artifacts(pb::ListArtifactsRequest {
+            job_id: job.id.clone(),
+            prefix: String::new(),
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .artifacts;
+    for prefix in &outputs {
+        let key = format!("{prefix}result.bin");
+        let artifact = listed.iter().find(|a| a.key == key).expect("output listed");
+        assert_eq!(artifact.sha256.len(), 64);
+    }
+    assert!(listed.iter().any(|a| a.key == done.dataset_key));
+    let key = format!("{}result.bin", outputs[4]);
+    let chunks: Vec<pb::ObjectChunk> = client
+        .download_artifact(pb::DownloadArtifactRequest {
+            job_id: job.id.clone(),
+            key: key.clone(),
+            offset: 0,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .map(|c| c.unwrap())
+        .collect()
+        .await;
+    let data: Vec<u8> = chunks.iter().flat_map(|c| c.data.clone()).collect();
+    assert_eq!(chunks[0].total_size, data.len() as u64);
+    assert!(String::from_utf8(data).unwrap().starts_with("output of"));
+    let outside = client
+        .download_artifact(pb::DownloadArtifactRequest {
+            job_id: job.id.clone(),
+            key: "uploads/x".into(),
+            offset: 0,
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(outside.code(), tonic::Code::InvalidArgument);
+
+    // A further render with a style blend reopens the job until it is done.
+    let render = client
+        .render_job(pb::RenderJobRequest {
+            job_id: job.id.clone(),
+            camera_path: Some(pb::CameraPath {
+                kind: "orbit".into(),
+                num_frames: 12,
+                fps: 24.0,
+                params_json: r#"{"radius": 4}"#.into(),
+            }),
+            style_blend: vec![
+                pb::StyleWeight {
+                    style_index: 0,
+                    weight: 1.0,
+                },
+                pb::StyleWeight {
+                    style_index: 1,
+                    weight: 3.0,
+                },
+            ],
+            config_overrides_json: String::new(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(render.state(), pb::TaskState::Ready);
+    assert_eq!(
+        get_job(&mut client, &job.id).await.state(),
+        pb::JobState::Running
+    );
+    let task = worker.run_one().await;
+    assert_eq!(task.task_id, render.id);
+    assert_eq!(task.inputs.len(), 4, "the four training stages");
+    let config: serde_json::Value = serde_json::from_str(&task.config_json).unwrap();
+    assert_eq!(config["style_blend"][1]["weight"], 0.75);
+    assert_eq!(config["camera_path"]["num_frames"], 12);
+    assert_eq!(
+        get_job(&mut client, &job.id).await.state(),
+        pb::JobState::Succeeded
+    );
+
+    let bad_blend = client
+        .render_job(pb::RenderJobRequest {
+            job_id: job.id.clone(),
+            style_blend: vec![pb::StyleWeight {
+                style_index: 7,
+                weight: 1.0,
+            }],
+            ..Default::default()
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(bad_fields(&bad_blend), ["style_blend[0].style_index"]);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn idempotency_key_returns_the_same_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let mut request = job_request(&mut client).await;
+    request.idempotency_key = "submit-42".into();
+    let first = client
+        .create_job(request.clone())
+        .await
+        .unwrap()
+        .into_inner();
+    let second = client
+        .create_job(request.clone())
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(first.created);
+    assert!(!second.created);
+    assert_eq!(first.job.unwrap().id, second.job.unwrap().id);
+    request.idempotency_key = "submit-43".into();
+    assert!(
+        client
+            .create_job(request)
+            .await
+            .unwrap()
+            .into_inner()
+            .created
+    );
+    let listed = client
+        .list_jobs(pb::ListJobsRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(listed.jobs.len(), 2);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn tasks_go_only_to_capable_workers() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let mut request = job_request(&mut client).await;
+    request.requirements = Some(pb::Requirements {
+        require_cuda: true,
+        labels: vec![],
+        memory_bytes: 8 << 30,
+    });
+    client.create_job(request).await.unwrap();
+    let mut cpu = FakeWorker::register(&server, "cpu", 0).await;
+    assert!(
+        cpu.lease(100).await.is_none(),
+        "cpu worker gets no CUDA task"
+    );
+    let mut small = FakeWorker::register(&server, "cuda:0", 4 << 30).await;
+    assert!(small.lease(100).await.is_none(), "too little memory");
+    let mut big = FakeWorker::register(&server, "cuda:1", 16 << 30).await;
+    let task = big.lease(100).await.expect("capable worker gets it");
+    assert_eq!(task.memory_bytes, 8 << 30);
+
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel(&server).await);
+    let status = health
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: "stylenerf.v1.JobService".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        status.status(),
+        tonic_health::pb::health_check_response::ServingStatus::Serving
+    );
+    server.shutdown().await.unwrap();
+}

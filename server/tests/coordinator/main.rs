@@ -1,0 +1,10 @@
+//! Integration tests of the coordinator over real gRPC on loopback, with real SQLite files and
+//! local object stores in temporary directories. `support` starts coordinators and provides
+//! authenticated clients, test inputs and a fake worker.
+
+mod auth;
+mod leases;
+mod lifecycle;
+mod restart;
+mod support;
+mod uploads;

@@ -1,0 +1,67 @@
+//! A coordinator restarted on the same SQLite file and store mid-job loses nothing: the job,
+//! its finished stages, a live lease (the worker's token still works) and the event log.
+
+use crate::support::*;
+use futures::StreamExt;
+use stylenerf_server::proto::v1 as pb;
+
+#[tokio::test]
+async fn restart_mid_job_loses_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let job = create_job(&mut client).await;
+    let mut worker = FakeWorker::register(&server, "cpu", 0).await;
+    worker.run_one().await;
+    let held = worker.lease(1000).await.unwrap();
+    assert_eq!(held.stage(), pb::Stage::RenderViews);
+    worker.heartbeat(&held, 3).await.unwrap();
+    let worker_id = worker.id.clone();
+    server.shutdown().await.unwrap();
+
+    // A new coordinator on the same files (on another port).
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let before = get_job(&mut client, &job.id).await;
+    assert_eq!(before.state(), pb::JobState::Running);
+    assert_eq!(before.tasks[0].state(), pb::TaskState::Succeeded);
+    assert_eq!(before.tasks[1].state(), pb::TaskState::Leased);
+    assert_eq!(before.tasks[1].progress.as_ref().unwrap().step, 3);
+
+    let mut worker = FakeWorker::register(&server, "cpu", 0).await;
+    worker.id = worker_id;
+    worker
+        .heartbeat(&held, 4)
+        .await
+        .expect("the lease survived");
+    worker
+        .complete(&held)
+        .await
+        .expect("completes across the restart");
+    for _ in 0..3 {
+        worker.run_one().await;
+    }
+    assert_eq!(
+        get_job(&mut client, &job.id).await.state(),
+        pb::JobState::Succeeded
+    );
+
+    let events: Vec<pb::Event> = client
+        .watch_job(pb::WatchJobRequest {
+            job_id: job.id.clone(),
+            after_seq: 0,
+            skip_progress: true,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .map(|e| e.unwrap())
+        .collect()
+        .await;
+    let succeeded = events
+        .iter()
+        .filter(|e| e.task_state() == pb::TaskState::Succeeded)
+        .count();
+    assert_eq!(succeeded, 5, "every stage's completion is in the log");
+    server.shutdown().await.unwrap();
+}
