@@ -1,9 +1,10 @@
 -- Initial schema of the coordinator: jobs, their stage tasks and dependencies, workers, the
 -- event log that `WatchJob` replays, task output manifests, and validated uploads.
--- Times are Unix epoch milliseconds; JSON columns hold UTF-8 JSON text.
+-- Times are Unix epoch milliseconds; JSON columns hold UTF-8 JSON text. Rows are never
+-- deleted, so plain INTEGER PRIMARY KEYs (no AUTOINCREMENT bookkeeping) stay increasing.
 
 CREATE TABLE jobs (
-    row             INTEGER PRIMARY KEY AUTOINCREMENT,
+    row             INTEGER PRIMARY KEY,
     id              TEXT    NOT NULL UNIQUE,
     owner           TEXT    NOT NULL,
     name            TEXT    NOT NULL,
@@ -26,7 +27,7 @@ CREATE UNIQUE INDEX jobs_idempotency ON jobs (owner, idempotency_key)
 CREATE INDEX jobs_owner ON jobs (owner, row);
 
 CREATE TABLE tasks (
-    id               INTEGER PRIMARY KEY AUTOINCREMENT,
+    id               INTEGER PRIMARY KEY,
     job_id           TEXT    NOT NULL REFERENCES jobs (id),
     stage            TEXT    NOT NULL,
     state            TEXT    NOT NULL,            -- pending|ready|leased|succeeded|failed|cancelled
@@ -72,7 +73,7 @@ CREATE TABLE workers (
 );
 
 CREATE TABLE events (
-    seq        INTEGER PRIMARY KEY AUTOINCREMENT,
+    seq        INTEGER PRIMARY KEY,
     job_id     TEXT    NOT NULL,
     at         INTEGER NOT NULL,
     kind       TEXT    NOT NULL,                  -- job_created|job_state|task_state|task_progress

@@ -15,5 +15,6 @@ pub mod scene;
 pub mod stages;
 pub mod style2d;
 pub mod views;
+pub mod warp;
 
 pub use error::{EngineError, Result};

@@ -518,10 +518,11 @@ fn llff_bad_npy_files() {
 
 #[test]
 fn blender_problems() {
+    const POSE: &str = "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]";
     let d = tempfile::tempdir().unwrap();
     std::fs::write(
         d.path().join("transforms_train.json"),
-        r#"{"frames": [{"file_path": "./train/r_0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#,
+        format!(r#"{{"frames": [{{"file_path": "./train/r_0", "transform_matrix": {POSE}}}]}}"#),
     )
     .unwrap();
     assert_mentions(
@@ -531,7 +532,10 @@ fn blender_problems() {
 
     std::fs::write(
         d.path().join("transforms_train.json"),
-        r#"{"camera_angle_x": 0.7, "frames": [{"file_path": "./train/r_0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#,
+        format!(
+            r#"{{"camera_angle_x": 0.7,
+                "frames": [{{"file_path": "./train/r_0", "transform_matrix": {POSE}}}]}}"#
+        ),
     )
     .unwrap();
     assert_mentions(

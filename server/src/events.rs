@@ -57,59 +57,77 @@ impl<'a> NewEvent<'a> {
     }
 }
 
-/// Events appended in one transaction, published once it commits.
+/// Events of one transaction: collected while it runs, appended to the log with one
+/// multi-row INSERT just before it commits, published after.
 #[derive(Debug, Default)]
 pub struct EventBatch {
+    pending: Vec<EventRow>,
     pub events: Vec<pb::Event>,
 }
 
 impl EventBatch {
-    /// Appends an event to the log (inside the caller's transaction).
-    pub async fn push(
-        &mut self,
-        conn: &mut SqliteConnection,
-        event: NewEvent<'_>,
-    ) -> Result<(), sqlx::Error> {
-        let at = crate::model::now_ms();
-        let progress = event
-            .progress
-            .map(StoredProgress::to_json)
-            .unwrap_or_default();
-        let seq: i64 = sqlx::query_scalar(
-            "INSERT INTO events (job_id, at, kind, task_id, stage, job_state, task_state, attempt, \
-             progress, message) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING seq",
-        )
-        .bind(event.job_id)
-        .bind(at)
-        .bind(event.kind)
-        .bind(event.task_id)
-        .bind(event.stage)
-        .bind(event.job_state)
-        .bind(event.task_state)
-        .bind(event.attempt)
-        .bind(&progress)
-        .bind(event.message)
-        .fetch_one(&mut *conn)
-        .await?;
-        self.events.push(to_pb(EventRow {
-            seq,
+    /// Adds an event to the transaction's batch.
+    pub fn push(&mut self, event: NewEvent<'_>) {
+        self.pending.push(EventRow {
+            seq: 0,
             job_id: event.job_id.to_string(),
-            at,
+            at: crate::model::now_ms(),
             kind: event.kind.to_string(),
             task_id: event.task_id,
             stage: event.stage.to_string(),
             job_state: event.job_state.to_string(),
             task_state: event.task_state.to_string(),
             attempt: event.attempt,
-            progress,
+            progress: event
+                .progress
+                .map(StoredProgress::to_json)
+                .unwrap_or_default(),
             message: event.message.to_string(),
-        }));
+        });
+    }
+
+    /// Appends the pending events to the log (inside the caller's transaction).
+    async fn flush(&mut self, conn: &mut SqliteConnection) -> Result<(), sqlx::Error> {
+        for chunk in std::mem::take(&mut self.pending).chunks(100) {
+            let mut insert = sqlx::QueryBuilder::<sqlx::Sqlite>::new(
+                "INSERT INTO events (job_id, at, kind, task_id, stage, job_state, task_state, \
+                 attempt, progress, message) ",
+            );
+            insert.push_values(chunk, |mut row, e| {
+                row.push_bind(e.job_id.clone())
+                    .push_bind(e.at)
+                    .push_bind(e.kind.clone())
+                    .push_bind(e.task_id)
+                    .push_bind(e.stage.clone())
+                    .push_bind(e.job_state.clone())
+                    .push_bind(e.task_state.clone())
+                    .push_bind(e.attempt)
+                    .push_bind(e.progress.clone())
+                    .push_bind(e.message.clone());
+            });
+            insert.push(" RETURNING seq");
+            // Rows are numbered in VALUES order; RETURNING order is unspecified.
+            let mut seqs: Vec<i64> = insert.build_query_scalar().fetch_all(&mut *conn).await?;
+            seqs.sort_unstable();
+            for (row, seq) in chunk.iter().zip(seqs) {
+                self.events.push(to_pb(EventRow { seq, ..row.clone() }));
+            }
+        }
         Ok(())
     }
 }
 
+/// Appends the batch's events and commits the transaction.
+pub async fn commit(
+    mut tx: sqlx::Transaction<'_, sqlx::Sqlite>,
+    batch: &mut EventBatch,
+) -> Result<(), sqlx::Error> {
+    batch.flush(&mut tx).await?;
+    tx.commit().await
+}
+
 /// A row of the `events` table.
-#[derive(Debug, sqlx::FromRow)]
+#[derive(Debug, Clone, sqlx::FromRow)]
 pub struct EventRow {
     pub seq: i64,
     pub job_id: String,

@@ -3,7 +3,7 @@
 
 use crate::auth::Principal;
 use crate::errors::{internal, job_not_found};
-use crate::events::{EventBatch, NewEvent, JOB_CREATED, JOB_STATE};
+use crate::events::{commit, EventBatch, NewEvent, JOB_CREATED, JOB_STATE};
 use crate::model::{
     job_state, job_state_pb, now_ms, stage_pb, task_state, task_state_pb, Stage, StoredProgress,
 };
@@ -148,12 +148,12 @@ pub async fn insert_job(
     if inserted == 0 {
         return Ok(false);
     }
-    batch
-        .push(
-            conn,
-            NewEvent::job(&job.id, JOB_CREATED, job_state::QUEUED, "job accepted"),
-        )
-        .await?;
+    batch.push(NewEvent::job(
+        &job.id,
+        JOB_CREATED,
+        job_state::QUEUED,
+        "job accepted",
+    ));
     let no_extra = serde_json::Map::new();
     let mut previous: Option<i64> = None;
     for stage in Stage::ALL {
@@ -200,12 +200,14 @@ pub async fn insert_job(
                 .execute(&mut *conn)
                 .await?;
         }
-        batch
-            .push(
-                conn,
-                NewEvent::task(&job.id, id, stage.as_str(), state, 0, "task created"),
-            )
-            .await?;
+        batch.push(NewEvent::task(
+            &job.id,
+            id,
+            stage.as_str(),
+            state,
+            0,
+            "task created",
+        ));
         previous = Some(id);
     }
     Ok(true)
@@ -228,29 +230,37 @@ pub async fn visible_job(
     }
 }
 
-/// A task row with its dependencies as a comma-separated list.
+/// A task row with its dependencies as a comma-separated list and its output manifest as a
+/// JSON array of `[key, size, sha256]`.
 #[derive(sqlx::FromRow)]
 struct TaskWithDeps {
     #[sqlx(flatten)]
     task: TaskRow,
     deps: String,
+    outputs: String,
 }
 
 /// The tasks of a job as protocol messages, with dependencies and output manifests.
 pub async fn load_tasks(pool: &SqlitePool, job_id: &str) -> Result<Vec<pb::Task>, Status> {
     let rows: Vec<TaskWithDeps> = sqlx::query_as(
         "SELECT t.*, COALESCE((SELECT group_concat(depends_on) FROM task_deps \
-         WHERE task_id = t.id), '') AS deps FROM tasks t WHERE t.job_id = ? ORDER BY t.id",
+         WHERE task_id = t.id), '') AS deps, \
+         (SELECT json_group_array(json_array(key, size, sha256)) FROM \
+          (SELECT key, size, sha256 FROM artifacts WHERE task_id = t.id ORDER BY key)) AS outputs \
+         FROM tasks t WHERE t.job_id = ? ORDER BY t.id",
     )
     .bind(job_id)
     .fetch_all(pool)
     .await
     .map_err(internal)?;
-    let mut outputs = load_artifacts(pool, job_id).await?;
     Ok(rows
         .into_iter()
         .map(|row| {
-            let outputs = outputs.remove(&row.task.id).unwrap_or_default();
+            let outputs = serde_json::from_str::<Vec<(String, u64, String)>>(&row.outputs)
+                .unwrap_or_default()
+                .into_iter()
+                .map(|(key, size, sha256)| pb::Artifact { key, size, sha256 })
+                .collect();
             let depends_on = row.deps.split(',').filter_map(|d| d.parse().ok()).collect();
             task_to_pb(row.task, outputs, depends_on)
         })
@@ -387,12 +397,8 @@ pub async fn set_job_state(
     .bind(job_id)
     .execute(&mut *conn)
     .await?;
-    batch
-        .push(
-            conn,
-            NewEvent::job(job_id, JOB_STATE, state, error.unwrap_or("")),
-        )
-        .await
+    batch.push(NewEvent::job(job_id, JOB_STATE, state, error.unwrap_or("")));
+    Ok(())
 }
 
 /// Cancels every unfinished task of a job (leased ones keep their lease so that the worker
@@ -412,12 +418,14 @@ pub async fn cancel_open_tasks(
     .fetch_all(&mut *conn)
     .await?;
     for (id, stage, attempt) in cancelled {
-        batch
-            .push(
-                conn,
-                NewEvent::task(job_id, id, &stage, task_state::CANCELLED, attempt, reason),
-            )
-            .await?;
+        batch.push(NewEvent::task(
+            job_id,
+            id,
+            &stage,
+            task_state::CANCELLED,
+            attempt,
+            reason,
+        ));
     }
     Ok(())
 }
@@ -461,7 +469,7 @@ pub async fn cancel_job(
     )
     .await
     .map_err(internal)?;
-    tx.commit().await.map_err(internal)?;
+    commit(tx, &mut batch).await.map_err(internal)?;
     shared.publish(batch);
     Ok(())
 }
@@ -550,20 +558,14 @@ pub async fn add_render(
         .await
         .map_err(internal)?;
     let mut batch = EventBatch::default();
-    batch
-        .push(
-            &mut tx,
-            NewEvent::task(
-                job_id,
-                id,
-                Stage::RenderStylized.as_str(),
-                task_state::READY,
-                0,
-                "render requested",
-            ),
-        )
-        .await
-        .map_err(internal)?;
+    batch.push(NewEvent::task(
+        job_id,
+        id,
+        Stage::RenderStylized.as_str(),
+        task_state::READY,
+        0,
+        "render requested",
+    ));
     if job.state == job_state::SUCCEEDED {
         set_job_state(&mut tx, &mut batch, job_id, job_state::RUNNING, None)
             .await
@@ -574,7 +576,7 @@ pub async fn add_render(
         .fetch_one(&mut *tx)
         .await
         .map_err(internal)?;
-    tx.commit().await.map_err(internal)?;
+    commit(tx, &mut batch).await.map_err(internal)?;
     shared.publish(batch);
     shared.wake_workers();
     Ok(task_to_pb(row, Vec::new(), vec![mutual_id as u64]))

@@ -4,7 +4,7 @@
 //! Every state change happens in one write transaction.
 
 use crate::errors::{internal, invalid};
-use crate::events::{EventBatch, NewEvent, JOB_STATE, TASK_PROGRESS};
+use crate::events::{commit, EventBatch, NewEvent, JOB_STATE, TASK_PROGRESS};
 use crate::jobs::{cancel_open_tasks, set_job_state, TaskRow};
 use crate::model::{job_state, now_ms, task_state, Stage, StoredProgress};
 use crate::state::Shared;
@@ -125,23 +125,33 @@ pub async fn try_lease(
             i64::MAX
         };
         let cuda = worker.device.starts_with("cuda");
-        let candidates: Vec<(i64, String)> = sqlx::query_as(
-            "SELECT t.id, j.labels FROM tasks t JOIN jobs j ON j.id = t.job_id \
-             WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
-             ORDER BY t.ready_at, t.id LIMIT 64",
-        )
-        .bind(free)
-        .bind(cuda)
-        .fetch_all(&mut *tx)
-        .await
-        .map_err(internal)?;
         let labels: HashSet<String> = serde_json::from_str(&worker.labels).unwrap_or_default();
-        let chosen = candidates.into_iter().find(|(_, job_labels)| {
-            serde_json::from_str::<Vec<String>>(job_labels)
-                .unwrap_or_default()
-                .iter()
-                .all(|l| labels.contains(l))
-        });
+        // Look at the head of the queue first; only a worker that matches none of it (labels)
+        // searches deeper.
+        let mut chosen = None;
+        for window in [8i64, 1024] {
+            let candidates: Vec<(i64, String)> = sqlx::query_as(
+                "SELECT t.id, j.labels FROM tasks t JOIN jobs j ON j.id = t.job_id \
+                 WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
+                 ORDER BY t.ready_at, t.id LIMIT ?",
+            )
+            .bind(free)
+            .bind(cuda)
+            .bind(window)
+            .fetch_all(&mut *tx)
+            .await
+            .map_err(internal)?;
+            let seen = candidates.len() as i64;
+            chosen = candidates.into_iter().find(|(_, job_labels)| {
+                serde_json::from_str::<Vec<String>>(job_labels)
+                    .unwrap_or_default()
+                    .iter()
+                    .all(|l| labels.contains(l))
+            });
+            if chosen.is_some() || seen < window {
+                break;
+            }
+        }
         if let Some((task_id, _)) = chosen {
             leased = Some(
                 claim(shared, &mut tx, &mut batch, task_id, worker_id, now)
@@ -150,7 +160,7 @@ pub async fn try_lease(
             );
         }
     }
-    tx.commit().await.map_err(internal)?;
+    commit(tx, &mut batch).await.map_err(internal)?;
     shared.publish(batch);
     if requeued {
         shared.wake_workers();
@@ -186,19 +196,18 @@ async fn claim(
     .fetch_one(&mut *conn)
     .await?;
     let message = format!("leased by {worker_id}");
-    batch
-        .push(
-            conn,
-            NewEvent::task(
-                &task.job_id,
-                task.id,
-                &task.stage,
-                task_state::LEASED,
-                task.attempt,
-                &message,
-            ),
-        )
-        .await?;
+    batch.push(NewEvent::task(
+        &task.job_id,
+        task.id,
+        &task.stage,
+        task_state::LEASED,
+        task.attempt,
+        &message,
+    ));
+    // Only the first lease of a job's first stage can start it.
+    if !(task.core && task.attempt == 1 && task.stage == Stage::NerfPretrain.as_str()) {
+        return Ok(task);
+    }
     let started = sqlx::query(
         "UPDATE jobs SET state = 'running', updated_at = ? WHERE id = ? AND state = 'queued'",
     )
@@ -208,15 +217,25 @@ async fn claim(
     .await?
     .rows_affected();
     if started > 0 {
-        batch
-            .push(
-                conn,
-                NewEvent::job(&task.job_id, JOB_STATE, job_state::RUNNING, ""),
-            )
-            .await?;
+        batch.push(NewEvent::job(
+            &task.job_id,
+            JOB_STATE,
+            job_state::RUNNING,
+            "",
+        ));
     }
     Ok(task)
 }
+
+/// A completed upstream task and one of its outputs (none if it has no outputs).
+type UpstreamRow = (
+    i64,
+    String,
+    String,
+    Option<String>,
+    Option<i64>,
+    Option<String>,
+);
 
 /// Builds the assignment of a freshly leased task: the job's inputs and the outputs of the
 /// completed upstream stages (committed data, read from the read pool).
@@ -227,21 +246,19 @@ async fn assignment(shared: &Shared, task: TaskRow) -> Result<pb::TaskAssignment
             .bind(&task.job_id)
             .fetch_one(pool)
             .await?;
-    let rows: Vec<(
-        i64,
-        String,
-        String,
-        Option<String>,
-        Option<i64>,
-        Option<String>,
-    )> = sqlx::query_as(
-        "SELECT t.id, t.stage, t.output_prefix, a.key, a.size, a.sha256 FROM tasks t \
+    // The first stage has no upstream outputs.
+    let rows: Vec<UpstreamRow> = if task.stage == Stage::NerfPretrain.as_str() {
+        Vec::new()
+    } else {
+        sqlx::query_as(
+            "SELECT t.id, t.stage, t.output_prefix, a.key, a.size, a.sha256 FROM tasks t \
              LEFT JOIN artifacts a ON a.task_id = t.id \
              WHERE t.job_id = ? AND t.core = 1 AND t.state = 'succeeded' ORDER BY t.id, a.key",
-    )
-    .bind(&task.job_id)
-    .fetch_all(pool)
-    .await?;
+        )
+        .bind(&task.job_id)
+        .fetch_all(pool)
+        .await?
+    };
     let order = |s: &str| Stage::ALL.iter().position(|x| x.as_str() == s);
     let mut inputs: Vec<pb::StageInput> = Vec::new();
     for (id, stage, prefix, key, size, sha256) in rows {
@@ -376,31 +393,25 @@ pub async fn heartbeat(
         )
         .await
         .map_err(internal)?;
-        tx.commit().await.map_err(internal)?;
+        commit(tx, &mut batch).await.map_err(internal)?;
         shared.publish(batch);
         shared.wake_workers();
         let held = held?;
         return Ok((held.cancelled, held.task.lease_expires_at));
     };
     if let Some(progress) = &progress {
-        batch
-            .push(
-                &mut tx,
-                NewEvent {
-                    job_id: &job_id,
-                    kind: TASK_PROGRESS,
-                    task_id: request.task_id as i64,
-                    stage: &stage,
-                    task_state: task_state::LEASED,
-                    attempt,
-                    progress: Some(progress),
-                    ..Default::default()
-                },
-            )
-            .await
-            .map_err(internal)?;
+        batch.push(NewEvent {
+            job_id: &job_id,
+            kind: TASK_PROGRESS,
+            task_id: request.task_id as i64,
+            stage: &stage,
+            task_state: task_state::LEASED,
+            attempt,
+            progress: Some(progress),
+            ..Default::default()
+        });
     }
-    tx.commit().await.map_err(internal)?;
+    commit(tx, &mut batch).await.map_err(internal)?;
     shared.publish(batch);
     Ok((false, expires))
 }
@@ -413,33 +424,55 @@ pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Res
         crate::storage::check_sha256(&format!("outputs[{i}].sha256"), &artifact.sha256)?;
     }
     let now = now_ms();
+    let metrics: std::collections::BTreeMap<&String, f64> = request
+        .metrics
+        .iter()
+        .filter(|(_, v)| v.is_finite())
+        .map(|(k, v)| (k, *v))
+        .collect();
+    let patch = serde_json::json!({"metrics": metrics, "eta_seconds": 0.0}).to_string();
     let mut batch = EventBatch::default();
     let mut tx = shared.db.write.begin().await.map_err(internal)?;
-    let held = check_lease(
-        &mut tx,
-        &mut batch,
-        &request.worker_id,
-        request.task_id,
-        request.fencing_token,
-        now,
+    // The common case in one statement: the lease is held and current. The final metrics are
+    // merged into the progress, and a known total counts as reached.
+    let completed: Option<TaskRow> = sqlx::query_as(
+        "UPDATE tasks SET state = 'succeeded', finished_at = ?, lease_expires_at = 0, error = '', \
+         progress = json_set(json_patch(progress, ?), '$.step', \
+           CASE WHEN COALESCE(json_extract(progress, '$.total'), 0) > 0 \
+           THEN json_extract(progress, '$.total') \
+           ELSE COALESCE(json_extract(progress, '$.step'), 0) END) \
+         WHERE id = ? AND fencing_token = ? AND worker_id = ? AND state = 'leased' \
+         AND lease_expires_at >= ? RETURNING *",
     )
+    .bind(now)
+    .bind(patch)
+    .bind(request.task_id as i64)
+    .bind(request.fencing_token as i64)
+    .bind(&request.worker_id)
+    .bind(now)
+    .fetch_optional(&mut *tx)
     .await
     .map_err(internal)?;
-    let held = match held {
-        Ok(held) => held,
-        Err(status) => {
-            tx.commit().await.map_err(internal)?;
-            shared.publish(batch);
-            shared.wake_workers();
-            return Err(status);
-        }
+    let Some(task) = completed else {
+        // Not held: a cancelled task is fine, anything else is reported.
+        let held = check_lease(
+            &mut tx,
+            &mut batch,
+            &request.worker_id,
+            request.task_id,
+            request.fencing_token,
+            now,
+        )
+        .await
+        .map_err(internal)?;
+        commit(tx, &mut batch).await.map_err(internal)?;
+        shared.publish(batch);
+        shared.wake_workers();
+        return held.map(|_| ());
     };
-    if held.cancelled {
-        return Ok(());
-    }
-    let task = held.task;
     for (i, artifact) in request.outputs.iter().enumerate() {
         if !artifact.key.starts_with(&task.output_prefix) {
+            // Dropping the transaction rolls the completion back.
             return Err(invalid(
                 format!("outputs[{i}].key"),
                 format!(
@@ -449,31 +482,7 @@ pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Res
             ));
         }
     }
-    let mut progress = StoredProgress::parse(&task.progress);
-    for (k, v) in &request.metrics {
-        if v.is_finite() {
-            progress.metrics.insert(k.clone(), *v);
-        }
-    }
-    if progress.total > 0 {
-        progress.step = progress.total;
-    }
-    progress.eta_seconds = 0.0;
-    sqlx::query(
-        "UPDATE tasks SET state = 'succeeded', finished_at = ?, lease_expires_at = 0, \
-         progress = ?, error = '' WHERE id = ?",
-    )
-    .bind(now)
-    .bind(progress.to_json())
-    .bind(task.id)
-    .execute(&mut *tx)
-    .await
-    .map_err(internal)?;
-    sqlx::query("DELETE FROM artifacts WHERE task_id = ?")
-        .bind(task.id)
-        .execute(&mut *tx)
-        .await
-        .map_err(internal)?;
+    // A task completes once (fencing), so it has no earlier manifest to replace.
     for chunk in request.outputs.chunks(200) {
         let mut insert = sqlx::QueryBuilder::<sqlx::Sqlite>::new(
             "INSERT INTO artifacts (key, job_id, task_id, size, sha256) ",
@@ -491,27 +500,23 @@ pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Res
         );
         insert.build().execute(&mut *tx).await.map_err(internal)?;
     }
-    batch
-        .push(
-            &mut tx,
-            NewEvent::task(
-                &task.job_id,
-                task.id,
-                &task.stage,
-                task_state::SUCCEEDED,
-                task.attempt,
-                "",
-            ),
-        )
-        .await
-        .map_err(internal)?;
+    batch.push(NewEvent::task(
+        &task.job_id,
+        task.id,
+        &task.stage,
+        task_state::SUCCEEDED,
+        task.attempt,
+        "",
+    ));
     let promoted = promote_dependents(&mut tx, &mut batch, &task)
         .await
         .map_err(internal)?;
-    settle_job(&mut tx, &mut batch, &task.job_id)
-        .await
-        .map_err(internal)?;
-    tx.commit().await.map_err(internal)?;
+    if !promoted {
+        settle_job(&mut tx, &mut batch, &task.job_id)
+            .await
+            .map_err(internal)?;
+    }
+    commit(tx, &mut batch).await.map_err(internal)?;
     shared.publish(batch);
     if promoted {
         shared.wake_workers();
@@ -543,7 +548,7 @@ pub async fn fail(shared: &Shared, request: &pb::FailTaskRequest) -> Result<bool
     let held = match held {
         Ok(held) => held,
         Err(status) => {
-            tx.commit().await.map_err(internal)?;
+            commit(tx, &mut batch).await.map_err(internal)?;
             shared.publish(batch);
             shared.wake_workers();
             return Err(status);
@@ -568,7 +573,7 @@ pub async fn fail(shared: &Shared, request: &pb::FailTaskRequest) -> Result<bool
             .await
             .map_err(internal)?;
     }
-    tx.commit().await.map_err(internal)?;
+    commit(tx, &mut batch).await.map_err(internal)?;
     shared.publish(batch);
     if requeue {
         shared.wake_workers();
@@ -596,19 +601,15 @@ async fn requeue_task(
     .execute(&mut *conn)
     .await?;
     let message = format!("requeued after attempt {}: {reason}", task.attempt);
-    batch
-        .push(
-            conn,
-            NewEvent::task(
-                &task.job_id,
-                task.id,
-                &task.stage,
-                task_state::READY,
-                task.attempt,
-                &message,
-            ),
-        )
-        .await
+    batch.push(NewEvent::task(
+        &task.job_id,
+        task.id,
+        &task.stage,
+        task_state::READY,
+        task.attempt,
+        &message,
+    ));
+    Ok(())
 }
 
 /// Fails a task for good. A failed stage fails its job (cancelling the rest); a failed extra
@@ -628,19 +629,14 @@ async fn fail_task(
     .bind(task.id)
     .execute(&mut *conn)
     .await?;
-    batch
-        .push(
-            conn,
-            NewEvent::task(
-                &task.job_id,
-                task.id,
-                &task.stage,
-                task_state::FAILED,
-                task.attempt,
-                reason,
-            ),
-        )
-        .await?;
+    batch.push(NewEvent::task(
+        &task.job_id,
+        task.id,
+        &task.stage,
+        task_state::FAILED,
+        task.attempt,
+        reason,
+    ));
     if task.core {
         let error = format!("{} failed: {reason}", task.stage);
         cancel_open_tasks(conn, batch, &task.job_id, &error).await?;
@@ -691,7 +687,7 @@ pub async fn reap(shared: &Shared) -> Result<(), sqlx::Error> {
     let mut batch = EventBatch::default();
     let mut tx = shared.db.write.begin().await?;
     let requeued = expire_leases(&mut tx, &mut batch, now_ms()).await?;
-    tx.commit().await?;
+    commit(tx, &mut batch).await?;
     shared.publish(batch);
     if requeued {
         shared.wake_workers();
@@ -718,19 +714,14 @@ async fn promote_dependents(
     .fetch_all(&mut *conn)
     .await?;
     for (id, stage) in &promoted {
-        batch
-            .push(
-                conn,
-                NewEvent::task(
-                    &task.job_id,
-                    *id,
-                    stage,
-                    task_state::READY,
-                    0,
-                    "inputs ready",
-                ),
-            )
-            .await?;
+        batch.push(NewEvent::task(
+            &task.job_id,
+            *id,
+            stage,
+            task_state::READY,
+            0,
+            "inputs ready",
+        ));
     }
     Ok(!promoted.is_empty())
 }

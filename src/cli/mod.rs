@@ -3,10 +3,13 @@
 use clap::{Args, Parser, Subcommand};
 
 mod bench_coordinator;
+mod bench_nerf;
+mod bench_vgg;
 mod common;
 mod coordinator;
 mod nerf;
 mod scene;
+mod stylize;
 mod weights;
 
 /// StylizedNeRF: consistent 3D scene stylization as a distributed training service.
@@ -44,11 +47,14 @@ pub enum Command {
     /// Train a radiance field and render its views.
     #[command(subcommand)]
     Nerf(nerf::NerfCommand),
+    /// 2D style transfer with AdaIN.
+    #[command(subcommand)]
+    Stylize(stylize::StylizeCommand),
     /// Import and inspect pretrained VGG encoder weights.
     #[command(subcommand)]
     Weights(weights::WeightsCommand),
     /// Run the coordinator: the gRPC job and worker APIs, SQLite, artifacts, metrics.
-    Coordinator(coordinator::CoordinatorCommand),
+    Coordinator(Box<coordinator::CoordinatorCommand>),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -57,8 +63,12 @@ pub enum Command {
 /// `stylenerf bench ...`
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
+    /// Radiance-field training: test PSNR against time, samples/s, depth error, peak RSS.
+    Nerf(bench_nerf::BenchNerfArgs),
     /// Coordinator throughput and latency on loopback with a real SQLite file.
     Coordinator(stylenerf_server::bench::BenchOptions),
+    /// VGG encoder forward and forward+backward time, frozen vs plain convolutions.
+    Vgg(bench_vgg::BenchVggArgs),
 }
 
 pub fn init_tracing(global: &GlobalArgs) {
@@ -77,8 +87,11 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Scene(cmd) => scene::run(cmd),
         Command::Nerf(cmd) => nerf::run(cmd),
+        Command::Stylize(cmd) => stylize::run(cmd),
         Command::Weights(cmd) => weights::run(cmd),
-        Command::Coordinator(cmd) => coordinator::run(cmd),
+        Command::Coordinator(cmd) => coordinator::run(*cmd),
         Command::Bench(BenchCommand::Coordinator(options)) => bench_coordinator::run(options),
+        Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
+        Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
     }
 }

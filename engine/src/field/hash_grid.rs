@@ -13,6 +13,7 @@ use candle_core::{CpuStorage, CustomOp2, Device, Layout, Shape, Tensor, Var, Wit
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::rng::Rng;
 use crate::Result;
 
 /// Shape of the encoding.
@@ -107,10 +108,17 @@ pub struct HashGrid {
 }
 
 impl HashGrid {
-    /// A table initialised uniformly in [−1e-4, 1e-4] (as in instant-ngp).
-    pub fn new(config: HashGridConfig, device: &Device) -> Result<Self> {
+    /// A table initialised uniformly in [−1e-4, 1e-4] (as in instant-ngp) from `rng`.
+    pub fn new(config: HashGridConfig, rng: &mut Rng, device: &Device) -> Result<Self> {
         let rows = config.levels * config.table_size();
-        let table = Var::rand(-1e-4f32, 1e-4, (rows, config.features_per_level), device)?;
+        let values: Vec<f32> = (0..rows * config.features_per_level)
+            .map(|_| (rng.uniform() * 2.0 - 1.0) * 1e-4)
+            .collect();
+        let table = Var::from_tensor(&Tensor::from_vec(
+            values,
+            (rows, config.features_per_level),
+            device,
+        )?)?;
         Ok(Self { config, table })
     }
 
@@ -333,7 +341,6 @@ pub fn normalise(points: &[f32], min: glam::Vec3, size: glam::Vec3) -> Vec<f32> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rng::Rng;
 
     fn small() -> HashGridConfig {
         // Two dense levels and two hashed ones.

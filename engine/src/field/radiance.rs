@@ -61,7 +61,7 @@ const MAX_LOG_SIGMA: f64 = 15.0;
 
 impl RadianceField {
     pub fn new(config: FieldConfig, aabb: Aabb, rng: &mut Rng, device: &Device) -> Result<Self> {
-        let grid = HashGrid::new(config.grid, device)?;
+        let grid = HashGrid::new(config.grid, rng, device)?;
         let density_net = Mlp::new(
             "density",
             &[

@@ -153,14 +153,12 @@ impl Samples {
             ..Default::default()
         };
         for w in self.packed.offsets.windows(2) {
-            for k in w[0] as usize..w[1] as usize {
-                if keep[k] {
-                    out.positions
-                        .extend_from_slice(&self.positions[3 * k..3 * k + 3]);
-                    out.ray.push(self.ray[k]);
-                    out.packed.deltas.push(self.packed.deltas[k]);
-                    out.packed.depths.push(self.packed.depths[k]);
-                }
+            for k in (w[0] as usize..w[1] as usize).filter(|&k| keep[k]) {
+                out.positions
+                    .extend_from_slice(&self.positions[3 * k..3 * k + 3]);
+                out.ray.push(self.ray[k]);
+                out.packed.deltas.push(self.packed.deltas[k]);
+                out.packed.depths.push(self.packed.depths[k]);
             }
             out.packed.offsets.push(out.ray.len() as u32);
         }

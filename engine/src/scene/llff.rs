@@ -111,9 +111,10 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
     })
 }
 
-/// The NDC box every camera sees into: the hull of the cameras' corner rays from the near
-/// plane (t = 0) to infinity (t = 1), which extends past [-1, 1] in x and y for cameras away
-/// from the average pose.
+/// The NDC box every camera sees into past the nearest content: the hull of the cameras'
+/// corner rays between the depth of the nearest scene bound (with a 10% margin) and infinity
+/// (t = 1). It extends past [-1, 1] in x and y for cameras away from the average pose; z
+/// stays [-1, 1].
 fn ndc_aabb(ndc: &Ndc, cameras: impl Iterator<Item = Camera>) -> Aabb {
     let mut aabb = Aabb {
         min: Vec3::splat(-1.0),

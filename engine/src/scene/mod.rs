@@ -18,7 +18,6 @@ mod paths;
 
 use std::fmt;
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 
 use glam::Vec3;
 use image::Rgb32FImage;
@@ -61,7 +60,8 @@ pub struct Frame {
     /// File name relative to the dataset root, used in messages and outputs.
     pub name: String,
     pub camera: Camera,
-    /// RGB in [0, 1] as stored in the file (no gamma decoding, as in NeRF), already composited on the scene background where the source had
+    /// RGB in [0, 1] as stored in the file (no gamma decoding, as in NeRF), already
+    /// composited on the scene background where the source had
     /// alpha, and resized to the camera's intrinsics.
     pub image: Rgb32FImage,
     /// Ground-truth z-depth per pixel (row-major, world units; 0 where unknown), when the
@@ -140,7 +140,8 @@ impl SceneFormat {
                 _ => Err(EngineError::dataset(
                     path,
                     "(format)",
-                    "not a dataset file: expected transforms.json, transforms_train.json or poses_bounds.npy",
+                    "not a dataset file: expected transforms.json, transforms_train.json or \
+                     poses_bounds.npy",
                 )),
             };
         }
@@ -159,7 +160,8 @@ impl SceneFormat {
                 EngineError::dataset(
                     path,
                     "(format)",
-                    "no transforms.json (nerfstudio), transforms_train.json (Blender) or poses_bounds.npy (LLFF) in this folder",
+                    "no transforms.json (nerfstudio), transforms_train.json (Blender) or \
+                     poses_bounds.npy (LLFF) in this folder",
                 )
             })
     }
@@ -168,22 +170,6 @@ impl SceneFormat {
 impl fmt::Display for SceneFormat {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
-    }
-}
-
-impl FromStr for SceneFormat {
-    type Err = EngineError;
-
-    fn from_str(s: &str) -> Result<Self> {
-        Self::ALL
-            .into_iter()
-            .find(|f| f.name() == s)
-            .ok_or_else(|| {
-                EngineError::config(
-                    "format",
-                    format!("unknown scene format `{s}`: expected nerfstudio, blender or llff"),
-                )
-            })
     }
 }
 

@@ -99,7 +99,10 @@ fn camera_model(top: &Obj) -> Result<Model> {
         Some("OPENCV") => Ok(Model::OpenCv),
         Some(other) => Err(top.err(
             "camera_model",
-            format!("unsupported camera model `{other}`: supported are PINHOLE, SIMPLE_PINHOLE and OPENCV (fisheye and equirectangular cameras are not)"),
+            format!(
+                "unsupported camera model `{other}`: supported are PINHOLE, SIMPLE_PINHOLE and \
+                 OPENCV (fisheye and equirectangular cameras are not)"
+            ),
         )),
     }
 }
@@ -234,7 +237,8 @@ fn distortion(top: &Obj, frame: &Obj, model: Model) -> Result<Distortion> {
         return Err(crate::EngineError::dataset(
             top.file(),
             field,
-            "non-zero distortion with a PINHOLE camera_model: set camera_model to OPENCV to have the images undistorted",
+            "non-zero distortion with a PINHOLE camera_model: set camera_model to OPENCV to \
+             have the images undistorted",
         ));
     }
     Ok(d)

@@ -55,7 +55,10 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
         other => {
             return Err(err(
                 "descr",
-                format!("unsupported dtype `{other}`: expected little-endian float64 `<f8` or float32 `<f4`"),
+                format!(
+                    "unsupported dtype `{other}`: expected little-endian float64 `<f8` or \
+                     float32 `<f4`"
+                ),
             ))
         }
     };

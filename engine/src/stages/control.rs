@@ -85,7 +85,7 @@ impl StageControl {
 
     /// Whether a checkpoint is due after `step`, given when the last one was written.
     pub fn checkpoint_due(&self, step: u64, last: Instant) -> bool {
-        (self.checkpoint_every_steps > 0 && step % self.checkpoint_every_steps == 0)
+        (self.checkpoint_every_steps > 0 && step.is_multiple_of(self.checkpoint_every_steps))
             || self
                 .checkpoint_every
                 .is_some_and(|every| last.elapsed() >= every)

@@ -5,5 +5,6 @@
 pub mod control;
 
 pub use control::{Outcome, Progress, StageControl};
+pub mod decoder_pretrain;
 pub mod nerf_pretrain;
 pub mod render_views;

@@ -1,18 +1,23 @@
 //! The 2D stylization network (AdaIN): a frozen pretrained VGG encoder up to relu4_1, the
 //! AdaIN layer, a trainable mirror decoder, the content/style losses, and a VAE over style
 //! features. Everything is composed from candle ops whose backward passes are verified by
-//! finite differences (see the tests of each module).
-
-pub mod arch;
-pub mod frozen_conv;
-pub mod pad;
-pub mod resample;
-pub mod weights;
+//! finite differences (see the tests of each module). Documentation: `docs/STYLE2D.md`.
 
 pub mod adain;
+pub mod arch;
 pub mod decoder;
 pub mod encoder;
+pub mod fit;
+pub mod frozen_conv;
+pub mod images;
+pub mod losses;
+pub mod network;
+pub mod pad;
+pub mod resample;
+pub mod st_file;
+pub mod style_features;
+pub mod vae;
+pub mod weights;
+
 #[cfg(test)]
 pub(crate) mod gradcheck;
-pub mod losses;
-pub mod st_file;

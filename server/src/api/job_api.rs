@@ -250,7 +250,9 @@ impl JobApi {
         let created = jobs::insert_job(&mut tx, &mut batch, &new_job, shared.config.max_attempts)
             .await
             .map_err(internal)?;
-        tx.commit().await.map_err(internal)?;
+        crate::events::commit(tx, &mut batch)
+            .await
+            .map_err(internal)?;
         let id = if created {
             shared.publish(batch);
             shared.wake_workers();

@@ -1,0 +1,542 @@
+//! Stage 3, `decoder_pretrain`: train the AdaIN decoder on the rendered views with the
+//! content, style and geometric consistency losses, L = L_c + λ_s L_s + λ_co L_co, then train
+//! the style VAE and record each style's latent distribution.
+//!
+//! Each step takes one style and a pair of neighbouring views (i, j), stylizes both as one
+//! batch and adds L_co = mean over the valid pixels of (O_i − M_ij · W_ij(O_j))², where W_ij
+//! warps with view i's rendered depth and both cameras (see [`crate::warp`]); pixels whose
+//! rendered opacity is below `min_opacity` have no depth. Views are cropped to multiples of 8.
+//!
+//! Output folder: `decoder.safetensors`, `vae.safetensors`, `styles.json` (per style: name, μ,
+//! σ, plus how the style features were computed), `sheets/style-<k>.png` (rows of content |
+//! style | output), `metrics.json` (written last), and `ckpt/` (decoder + Adam moments + RNG).
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::Instant;
+
+use candle_core::{Device, Tensor};
+use image::Rgb32FImage;
+use serde::{Deserialize, Serialize};
+
+use crate::checkpoint::{write_atomic, CheckpointDir};
+use crate::optim::{Adam, AdamConfig};
+use crate::preset::Preset;
+use crate::rng::Rng;
+use crate::stages::{Outcome, Progress, StageControl};
+use crate::style2d::arch::VggArch;
+use crate::style2d::decoder::Decoder;
+use crate::style2d::encoder::VggEncoder;
+use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc};
+use crate::style2d::network::{AdaInNet, StyleTarget};
+use crate::style2d::style_features::{crop_vectors, CropConfig};
+use crate::style2d::vae::{LatentGaussian, StyleVae, VaeConfig};
+use crate::style2d::weights::EncoderWeights;
+use crate::views::RenderedViews;
+use crate::warp::{Warp, WarpConfig};
+use crate::{EngineError, Result};
+
+/// Configuration of the stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecoderPretrainConfig {
+    pub steps: u64,
+    pub lr: f64,
+    /// λ_s.
+    pub style_weight: f64,
+    /// λ_co (0 disables the consistency loss).
+    pub consistency_weight: f64,
+    /// Each view is paired with one of its this many nearest views (by camera centre).
+    pub neighbours: usize,
+    /// Pixels rendered less opaque than this have no depth for warping.
+    pub min_opacity: f32,
+    pub warp: WarpTolerance,
+    /// Longer side the style images are resized to for their statistics.
+    pub style_size: u32,
+    pub vae: VaeConfig,
+    pub vae_steps: usize,
+    pub vae_lr: f64,
+    /// Random crops per style for the VAE (and for its per-style distribution).
+    pub crops_per_style: usize,
+    pub crop: CropConfig,
+    pub seed: u64,
+}
+
+/// The warp's relative depth tolerance (a serialisable copy of [`WarpConfig`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct WarpTolerance {
+    pub rel_tolerance: f32,
+}
+
+impl DecoderPretrainConfig {
+    pub fn preset(preset: Preset) -> Self {
+        let base = Self {
+            steps: 400,
+            lr: 5e-4,
+            style_weight: 1.0,
+            consistency_weight: 10.0,
+            neighbours: 2,
+            min_opacity: 0.5,
+            warp: WarpTolerance {
+                rel_tolerance: WarpConfig::default().rel_tolerance,
+            },
+            style_size: 256,
+            vae: VaeConfig::default(),
+            vae_steps: 500,
+            vae_lr: 1e-3,
+            crops_per_style: 32,
+            crop: CropConfig::default(),
+            seed: 0,
+        };
+        match preset {
+            Preset::Tiny => Self {
+                steps: 4,
+                style_size: 32,
+                vae: VaeConfig {
+                    hidden: 32,
+                    latent: 8,
+                    ..VaeConfig::default()
+                },
+                vae_steps: 20,
+                crops_per_style: 4,
+                crop: CropConfig {
+                    size: 32,
+                    min_scale: 0.5,
+                },
+                ..base
+            },
+            Preset::Quick => base,
+            Preset::Standard => Self {
+                steps: 3000,
+                crops_per_style: 64,
+                ..base
+            },
+            Preset::Paper => Self {
+                steps: 20_000,
+                lr: 1e-4,
+                crops_per_style: 128,
+                vae_steps: 2000,
+                ..base
+            },
+        }
+    }
+}
+
+/// A style image with its name.
+#[derive(Debug, Clone)]
+pub struct StyleImage {
+    pub name: String,
+    pub image: Rgb32FImage,
+}
+
+/// What `styles.json` holds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StylesFile {
+    /// How the VAE's input was computed (see [`crate::style2d::style_features`]): relu4_1
+    /// channel mean + std of `crops_per_style` random crops resized to `crop.size`².
+    pub feature: String,
+    pub crop: CropConfig,
+    pub styles: Vec<StyleLatent>,
+}
+
+/// One style's latent distribution (the moment-matched mixture over its crops).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StyleLatent {
+    pub name: String,
+    #[serde(flatten)]
+    pub latent: LatentGaussian,
+}
+
+/// Loss values at one step.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LossRecord {
+    pub step: u64,
+    pub content: f32,
+    pub style: f32,
+    pub consistency: f32,
+}
+
+/// The stage's metrics.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecoderPretrainReport {
+    pub steps: u64,
+    pub resumed_from: u64,
+    pub train_seconds: f64,
+    pub loss_log: Vec<LossRecord>,
+    /// Masked MSE between each stylized view and its warped stylized neighbour (evaluation
+    /// pairs: every view with its nearest neighbour, every style).
+    pub consistency_mse: f64,
+    /// Mean style loss of the stylized views (style fidelity).
+    pub style_loss: f64,
+    pub vae_reconstruction: f32,
+}
+
+#[derive(Serialize, Deserialize)]
+struct CheckpointMeta {
+    step: u64,
+    rng: Rng,
+    config: DecoderPretrainConfig,
+    loss_log: Vec<LossRecord>,
+    train_seconds: f64,
+}
+
+/// The views cropped (top-left) to multiples of the encoder's stride.
+fn crop_views(v: &RenderedViews) -> Result<RenderedViews> {
+    let s = VggArch::STRIDE as u32;
+    let (w, h) = (v.width / s * s, v.height / s * s);
+    if w < 2 * s || h < 2 * s {
+        return Err(EngineError::config(
+            "views",
+            format!("{}×{} is too small to stylize", v.width, v.height),
+        ));
+    }
+    let mut out = RenderedViews {
+        width: w,
+        height: h,
+        views: v.views.clone(),
+        rgb: vec![],
+        depth: vec![],
+        opacity: vec![],
+    };
+    for (i, info) in out.views.iter_mut().enumerate() {
+        info.camera.intrinsics.width = w;
+        info.camera.intrinsics.height = h;
+        for y in 0..h as usize {
+            let row = y * v.width as usize;
+            out.rgb
+                .extend_from_slice(&v.rgb(i)[3 * row..3 * (row + w as usize)]);
+            out.depth
+                .extend_from_slice(&v.depth(i)[row..row + w as usize]);
+            out.opacity
+                .extend_from_slice(&v.opacity(i)[row..row + w as usize]);
+        }
+    }
+    Ok(out)
+}
+
+/// For each view, the indices of its `k` nearest other views by camera centre.
+fn nearest(views: &RenderedViews, k: usize) -> Vec<Vec<usize>> {
+    (0..views.len())
+        .map(|i| {
+            let p = views.views[i].camera.position;
+            let mut others: Vec<usize> = (0..views.len()).filter(|&j| j != i).collect();
+            others.sort_by(|&a, &b| {
+                let da = views.views[a].camera.position.distance_squared(p);
+                let db = views.views[b].camera.position.distance_squared(p);
+                da.total_cmp(&db)
+            });
+            others.truncate(k.max(1));
+            others
+        })
+        .collect()
+}
+
+/// Per-view data the steps reuse: content tensors, relu4_1 features, warps.
+struct ViewCache<'a> {
+    views: &'a RenderedViews,
+    cfg: &'a DecoderPretrainConfig,
+    device: Device,
+    content: HashMap<usize, (Tensor, Tensor)>,
+    warps: HashMap<(usize, usize), Warp>,
+}
+
+impl ViewCache<'_> {
+    /// View `i` as `[1, 3, H, W]` and its relu4_1.
+    fn content(&mut self, net: &AdaInNet, i: usize) -> Result<(Tensor, Tensor)> {
+        if let Some(c) = self.content.get(&i) {
+            return Ok(c.clone());
+        }
+        let x = hwc_to_tensor(
+            self.views.rgb(i),
+            self.views.width as usize,
+            self.views.height as usize,
+            &self.device,
+        )?;
+        let f = net.encoder.relu4_1(&x)?;
+        self.content.insert(i, (x.clone(), f.clone()));
+        Ok((x, f))
+    }
+
+    fn depth(&self, i: usize) -> Vec<f32> {
+        let min = self.cfg.min_opacity;
+        self.views
+            .depth(i)
+            .iter()
+            .zip(self.views.opacity(i))
+            .map(|(&d, &o)| if o >= min { d } else { 0.0 })
+            .collect()
+    }
+
+    fn warp(&mut self, i: usize, j: usize) -> Result<&Warp> {
+        if !self.warps.contains_key(&(i, j)) {
+            let w = Warp::new(
+                &self.views.views[i].camera,
+                &self.depth(i),
+                &self.views.views[j].camera,
+                &self.depth(j),
+                WarpConfig {
+                    rel_tolerance: self.cfg.warp.rel_tolerance,
+                },
+                &self.device,
+            )?;
+            self.warps.insert((i, j), w);
+        }
+        Ok(&self.warps[&(i, j)])
+    }
+}
+
+/// Losses of stylizing views i and j with one style, as one batch.
+fn pair_losses(
+    net: &AdaInNet,
+    cache: &mut ViewCache,
+    style: &StyleTarget,
+    i: usize,
+    j: usize,
+) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
+    let (_, fi) = cache.content(net, i)?;
+    let (_, fj) = cache.content(net, j)?;
+    let target = crate::style2d::adain::adain(&Tensor::cat(&[&fi, &fj], 0)?, &style.stats[3], 1.0)?;
+    let out = net.decoder.forward(&target)?;
+    let feats = net.encoder.features(&out)?;
+    let content = crate::style2d::losses::content_loss(&feats[3], &target)?;
+    let style_l = crate::style2d::losses::style_loss(&feats, &style.stats)?;
+    let consistency = cache
+        .warp(i, j)?
+        .consistency_loss(&out.get(0)?, &out.get(1)?)?;
+    Ok((content, style_l, consistency, out))
+}
+
+/// What the stage reads.
+#[derive(Debug, Clone, Copy)]
+pub struct Inputs<'a> {
+    /// The `render_views` output: RGB, z-depth, opacity and cameras.
+    pub views: &'a RenderedViews,
+    pub styles: &'a [StyleImage],
+    pub encoder: &'a EncoderWeights,
+    /// A decoder to start from (this project's safetensors or AdaIN's zip `decoder.pth`).
+    pub init_decoder: Option<&'a Path>,
+}
+
+/// Trains the decoder and the VAE; writes the outputs into `out`. Resumes from `out/ckpt`.
+pub fn run(
+    inputs: Inputs,
+    cfg: &DecoderPretrainConfig,
+    out: &Path,
+    control: &StageControl,
+    device: &Device,
+) -> Result<Outcome<DecoderPretrainReport>> {
+    let Inputs {
+        views,
+        styles,
+        encoder,
+        init_decoder,
+    } = inputs;
+    if styles.is_empty() {
+        return Err(EngineError::config(
+            "styles",
+            "at least one style image is needed",
+        ));
+    }
+    if views.len() < 2 {
+        return Err(EngineError::config(
+            "views",
+            "at least two rendered views are needed",
+        ));
+    }
+    let views = crop_views(views)?;
+    let decoder = match init_decoder {
+        Some(p) => Decoder::load(p, device)?.0,
+        None => Decoder::new(encoder.arch, cfg.seed, device)?,
+    };
+    if decoder.arch() != encoder.arch {
+        return Err(EngineError::config(
+            "decoder",
+            format!(
+                "a {} decoder cannot decode a {} encoder",
+                decoder.arch().name(),
+                encoder.arch.name()
+            ),
+        ));
+    }
+    let net = AdaInNet {
+        encoder: VggEncoder::new(encoder, device)?,
+        decoder,
+    };
+    let style_tensors = styles
+        .iter()
+        .map(|s| crate::style2d::images::to_tensor(&s.image, cfg.style_size, device))
+        .collect::<Result<Vec<_>>>()?;
+    let targets = style_tensors
+        .iter()
+        .map(|t| Ok(net.style_target(t)?))
+        .collect::<Result<Vec<_>>>()?;
+    let pairs = nearest(&views, cfg.neighbours);
+    let mut cache = ViewCache {
+        views: &views,
+        cfg,
+        device: device.clone(),
+        content: HashMap::new(),
+        warps: HashMap::new(),
+    };
+
+    let mut adam = Adam::new(net.decoder.vars(), AdamConfig::default())?;
+    let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
+    let mut rng = Rng::new(cfg.seed);
+    let (mut start, mut loss_log, mut seconds_before) = (0, Vec::new(), 0.0);
+    if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
+        net.decoder.set_tensors(&c.tensors)?;
+        adam.load_state(&c.tensors, c.meta.step)?;
+        (start, rng, loss_log, seconds_before) = (
+            c.meta.step,
+            c.meta.rng,
+            c.meta.loss_log,
+            c.meta.train_seconds,
+        );
+        tracing::info!(step = start, "decoder_pretrain: resuming from checkpoint");
+    }
+    let started = Instant::now();
+    let mut last_ckpt = Instant::now();
+    for step in start..cfg.steps {
+        let s = rng.below(styles.len());
+        let i = rng.below(views.len());
+        let j = pairs[i][rng.below(pairs[i].len())];
+        let (lc, ls, lco, _) = pair_losses(&net, &mut cache, &targets[s], i, j)?;
+        let total = ((&lc + (&ls * cfg.style_weight)?)? + (&lco * cfg.consistency_weight)?)?;
+        adam.step(&total.backward()?, cfg.lr)?;
+        let done = step + 1;
+        let rec = LossRecord {
+            step: done,
+            content: lc.to_scalar()?,
+            style: ls.to_scalar()?,
+            consistency: lco.to_scalar()?,
+        };
+        loss_log.push(rec);
+        let mut p = Progress {
+            stage: "decoder_pretrain".into(),
+            step: done,
+            total: cfg.steps,
+            loss: Some(total.to_scalar::<f32>()? as f64),
+            resumed_from: start,
+            ..Default::default()
+        };
+        p.metrics.insert("content".into(), rec.content as f64);
+        p.metrics.insert("style".into(), rec.style as f64);
+        p.metrics
+            .insert("consistency".into(), rec.consistency as f64);
+        control.report(&p);
+        let stop = control.should_stop(done);
+        if done < cfg.steps && (stop || control.checkpoint_due(done, last_ckpt)) {
+            let mut tensors = net.decoder.tensors();
+            tensors.extend(adam.state());
+            let meta = CheckpointMeta {
+                step: done,
+                rng,
+                config: cfg.clone(),
+                loss_log: loss_log.clone(),
+                train_seconds: seconds_before + started.elapsed().as_secs_f64(),
+            };
+            ckpt.save(done, &tensors, &meta)?;
+            last_ckpt = Instant::now();
+        }
+        if stop && done < cfg.steps {
+            if control.is_cancelled() {
+                return Err(EngineError::Cancelled);
+            }
+            return Ok(Outcome::Stopped { step: done });
+        }
+    }
+    let train_seconds = seconds_before + started.elapsed().as_secs_f64();
+    std::fs::create_dir_all(out.join("sheets")).map_err(|e| EngineError::io(out, e))?;
+    net.decoder
+        .save(&out.join("decoder.safetensors"), net.encoder.source())?;
+
+    // Evaluation: every view with its nearest neighbour, every style.
+    let (mut co, mut st, mut n) = (0.0, 0.0, 0.0);
+    for (k, target) in targets.iter().enumerate() {
+        let mut rows = Vec::new();
+        for (i, nb) in pairs.iter().enumerate() {
+            let (_, ls, lco, o) = pair_losses(&net, &mut cache, target, i, nb[0])?;
+            co += lco.to_scalar::<f32>()? as f64;
+            st += ls.to_scalar::<f32>()? as f64;
+            n += 1.0;
+            if rows.len() < 3 {
+                rows.push((cache.content(&net, i)?.0, o.get(0)?));
+            }
+        }
+        contact_sheet(
+            &out.join("sheets").join(format!("style-{k}.png")),
+            &rows,
+            &style_tensors[k],
+        )?;
+    }
+
+    // The style VAE on random crops of every style.
+    let mut vae_rng = Rng::new(cfg.seed ^ 0x5eed_5eed);
+    let vae = StyleVae::new(cfg.vae, cfg.seed, device)?;
+    let crops = styles
+        .iter()
+        .map(|s| {
+            crop_vectors(
+                &net.encoder,
+                &s.image,
+                cfg.crops_per_style,
+                cfg.crop,
+                &mut vae_rng,
+                device,
+            )
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let vae_losses = vae.train(
+        &Tensor::cat(&crops, 0)?,
+        cfg.vae_steps,
+        cfg.vae_lr,
+        &mut vae_rng,
+    )?;
+    vae.save(&out.join("vae.safetensors"))?;
+    let styles_file = StylesFile {
+        feature: "relu4_1 channel mean (512) + std (512), unbiased variance + 1e-5; VAE input"
+            .into(),
+        crop: cfg.crop,
+        styles: styles
+            .iter()
+            .zip(&crops)
+            .map(|(s, c)| {
+                Ok(StyleLatent {
+                    name: s.name.clone(),
+                    latent: vae.style_distribution(c)?,
+                })
+            })
+            .collect::<Result<_>>()?,
+    };
+    write_atomic(&out.join("styles.json"), &to_json(&styles_file)?)?;
+    let report = DecoderPretrainReport {
+        steps: cfg.steps,
+        resumed_from: start,
+        train_seconds,
+        loss_log,
+        consistency_mse: co / n,
+        style_loss: st / n,
+        vae_reconstruction: vae_losses.reconstruction,
+    };
+    write_atomic(&out.join("metrics.json"), &to_json(&report)?)?;
+    Ok(Outcome::Done(report))
+}
+
+fn to_json<T: Serialize>(v: &T) -> Result<Vec<u8>> {
+    serde_json::to_vec_pretty(v).map_err(|e| EngineError::artifact("json", e.to_string()))
+}
+
+/// Writes rows of content | style | output (each `[1, 3, H, W]` / `[3, H, W]`), the style
+/// resized to the row height.
+fn contact_sheet(path: &Path, rows: &[(Tensor, Tensor)], style: &Tensor) -> Result<()> {
+    let (_, _, h, w) = rows[0].0.dims4()?;
+    let style = style.interpolate2d(h, w)?;
+    let mut img = image::RgbImage::new(3 * w as u32, (h * rows.len()) as u32);
+    for (r, (content, output)) in rows.iter().enumerate() {
+        for (c, t) in [content, &style, output].into_iter().enumerate() {
+            let (tw, th, rgb) = tensor_to_hwc(t)?;
+            let tile = crate::image_io::to_rgb8(tw, th, &rgb);
+            image::imageops::replace(&mut img, &tile, (c * w) as i64, (r * h) as i64);
+        }
+    }
+    crate::image_io::save_png(path, &img)
+}

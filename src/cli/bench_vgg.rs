@@ -1,0 +1,75 @@
+//! `stylenerf bench vgg`: timing of the frozen VGG encoder — forward to relu4_1 and
+//! forward + backward to the input image — at 128² and 256², with the frozen convolution
+//! (input gradient only) against candle's plain conv2d (which also computes kernel gradients).
+
+use std::time::Instant;
+
+use candle_core::{Device, Tensor, Var};
+use clap::Args;
+use stylenerf_engine::style2d::encoder::{ConvPath, VggEncoder};
+use stylenerf_engine::style2d::weights::EncoderWeights;
+
+#[derive(Debug, Args)]
+pub struct BenchVggArgs {
+    /// Encoder weights (default: the bundled VGG-16).
+    #[arg(long)]
+    encoder: Option<std::path::PathBuf>,
+    /// Image sides to measure.
+    #[arg(long, value_delimiter = ',', default_values_t = [128usize, 256])]
+    sizes: Vec<usize>,
+    /// Timed repetitions per measurement (the median is reported), after one warm-up.
+    #[arg(long, default_value_t = 3)]
+    reps: usize,
+}
+
+fn median_secs(reps: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<f64> {
+    f()?;
+    let mut t: Vec<f64> = (0..reps)
+        .map(|_| {
+            let s = Instant::now();
+            f().map(|_| s.elapsed().as_secs_f64())
+        })
+        .collect::<anyhow::Result<_>>()?;
+    t.sort_by(f64::total_cmp);
+    Ok(t[t.len() / 2])
+}
+
+pub fn run(a: BenchVggArgs) -> anyhow::Result<()> {
+    let dev = Device::Cpu;
+    let weights = EncoderWeights::load_or_bundled(a.encoder.as_deref())?;
+    let frozen = VggEncoder::new(&weights, &dev)?;
+    let plain = frozen.clone().with_conv_path(ConvPath::Plain);
+    println!(
+        "encoder {} ({}), {} threads, median of {}",
+        weights.arch.name(),
+        weights.source,
+        candle_core::utils::get_num_threads(),
+        a.reps
+    );
+    println!(
+        "| size | forward (s) | fwd+bwd plain conv2d (s) | fwd+bwd frozen conv (s) | speed-up |"
+    );
+    println!("|---|---|---|---|---|");
+    for &s in &a.sizes {
+        let x = Tensor::rand(0f32, 1.0, (1, 3, s, s), &dev)?;
+        let var = Var::from_tensor(&x)?;
+        let fwd = median_secs(a.reps, || Ok(frozen.relu4_1(&x).map(drop)?))?;
+        let fb = |enc: &VggEncoder| {
+            median_secs(a.reps, || {
+                let g = enc
+                    .relu4_1(var.as_tensor())?
+                    .sqr()?
+                    .mean_all()?
+                    .backward()?;
+                anyhow::ensure!(
+                    g.get(var.as_tensor()).is_some(),
+                    "no gradient reached the image"
+                );
+                Ok(())
+            })
+        };
+        let (tp, tf) = (fb(&plain)?, fb(&frozen)?);
+        println!("| {s}² | {fwd:.3} | {tp:.3} | {tf:.3} | {:.2}× |", tp / tf);
+    }
+    Ok(())
+}

@@ -1,0 +1,122 @@
+//! `stylenerf stylize image`: AdaIN style transfer of one image, a standalone use of the 2D
+//! network and a visible check of it.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use candle_core::Device;
+use clap::{Args, Subcommand};
+use stylenerf_engine::image_io;
+use stylenerf_engine::style2d::decoder::Decoder;
+use stylenerf_engine::style2d::encoder::VggEncoder;
+use stylenerf_engine::style2d::fit::{fit_pair, FitConfig};
+use stylenerf_engine::style2d::images;
+use stylenerf_engine::style2d::network::AdaInNet;
+use stylenerf_engine::style2d::weights::EncoderWeights;
+
+#[derive(Debug, Subcommand)]
+pub enum StylizeCommand {
+    /// Stylize one image with AdaIN.
+    ///
+    /// No pretrained decoder ships with stylenerf. Without --decoder, this command trains a
+    /// decoder from scratch for this one content/style pair (--train-steps Adam steps on
+    /// AdaIN's content and style losses; a few minutes on a CPU at the default size). That is a
+    /// per-image optimisation: good for a look at a style, not a general AdaIN model. Pass a
+    /// decoder trained by `decoder_pretrain`, or AdaIN's decoder.pth together with
+    /// vgg_normalised.pth as --encoder, for instant feed-forward results.
+    Image(ImageArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ImageArgs {
+    /// Content image.
+    #[arg(long)]
+    content: PathBuf,
+    /// Style image.
+    #[arg(long)]
+    style: PathBuf,
+    /// Output PNG.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Style strength: 1 = full style, 0 = content features unchanged.
+    #[arg(long, default_value_t = 1.0)]
+    alpha: f64,
+    /// Pretrained decoder (this project's safetensors or AdaIN's zip-format decoder.pth).
+    #[arg(long)]
+    decoder: Option<PathBuf>,
+    /// Encoder weights (any format `weights import` reads); default: the bundled VGG-16.
+    #[arg(long)]
+    encoder: Option<PathBuf>,
+    /// Longer side of the working resolution (rounded to a multiple of 8).
+    #[arg(long, default_value_t = 256)]
+    size: u32,
+    /// Adam steps when training a decoder for this pair (ignored with --decoder).
+    #[arg(long, default_value_t = FitConfig::default().steps)]
+    train_steps: usize,
+    /// Weight of the style loss against the content loss when training.
+    #[arg(long, default_value_t = FitConfig::default().style_weight)]
+    style_weight: f64,
+    /// Learning rate when training.
+    #[arg(long, default_value_t = FitConfig::default().lr)]
+    lr: f64,
+    /// Seed of the decoder's initialisation.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+pub fn run(cmd: StylizeCommand) -> anyhow::Result<()> {
+    match cmd {
+        StylizeCommand::Image(args) => image(args),
+    }
+}
+
+fn image(a: ImageArgs) -> anyhow::Result<()> {
+    let dev = Device::Cpu;
+    let weights = EncoderWeights::load_or_bundled(a.encoder.as_deref())?;
+    let encoder = VggEncoder::new(&weights, &dev)?;
+    let content = images::to_tensor(&image_io::load_rgb(&a.content)?, a.size, &dev)?;
+    let style = images::to_tensor(&image_io::load_rgb(&a.style)?, a.size, &dev)?;
+    let decoder = match &a.decoder {
+        Some(p) => {
+            let (d, trained_with) = Decoder::load(p, &dev)?;
+            if let Some(t) = trained_with.filter(|t| t != encoder.source()) {
+                tracing::warn!(
+                    "decoder was trained with encoder `{t}`, using `{}`",
+                    encoder.source()
+                );
+            }
+            d
+        }
+        None => Decoder::new(weights.arch, a.seed, &dev)?,
+    };
+    let net = AdaInNet { encoder, decoder };
+    let target = net.style_target(&style)?;
+    if a.decoder.is_none() {
+        let cfg = FitConfig {
+            steps: a.train_steps,
+            lr: a.lr,
+            style_weight: a.style_weight,
+        };
+        let t0 = Instant::now();
+        tracing::info!(
+            steps = cfg.steps,
+            "no --decoder: training one for this content/style pair"
+        );
+        fit_pair(&net, &content, &target, cfg, |r| {
+            if r.step % 25 == 0 || r.step + 1 == cfg.steps {
+                tracing::info!(
+                    step = r.step,
+                    content = r.content,
+                    style = r.style,
+                    elapsed_s = t0.elapsed().as_secs_f32(),
+                    "training"
+                );
+            }
+        })?;
+    }
+    let out = net.stylize(&content, &target, a.alpha)?;
+    let (w, h, rgb) = images::tensor_to_hwc(&out)?;
+    image_io::save_rgb_png(&a.output, w, h, &rgb)?;
+    println!("wrote {} ({w}×{h})", a.output.display());
+    Ok(())
+}
