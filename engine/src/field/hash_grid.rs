@@ -13,6 +13,7 @@ use candle_core::{CpuStorage, CustomOp2, Device, Layout, Shape, Tensor, Var, Wit
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::cpu_ops::contiguous_slice;
 use crate::rng::Rng;
 use crate::Result;
 
@@ -177,17 +178,6 @@ fn points_slice<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f
     }
 }
 
-fn contiguous<'a, T: WithDType>(
-    d: &'a [T],
-    l: &Layout,
-    what: &str,
-) -> candle_core::Result<&'a [T]> {
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&d[a..b]),
-        None => candle_core::bail!("hash-grid: {what} must be contiguous"),
-    }
-}
-
 /// Fused forward: table [rows, F] × points [N, 3] → features [N, L·F].
 struct HashEncode {
     config: HashGridConfig,
@@ -234,8 +224,12 @@ impl CustomOp2 for HashEncode {
         let pts = points_slice(s2, l2)?;
         let shape = Shape::from((pts.len() / 3, self.config.output_dim()));
         let out = match s1 {
-            CpuStorage::F32(t) => CpuStorage::F32(self.forward(contiguous(t, l1, "table")?, pts)),
-            CpuStorage::F64(t) => CpuStorage::F64(self.forward(contiguous(t, l1, "table")?, pts)),
+            CpuStorage::F32(t) => {
+                CpuStorage::F32(self.forward(contiguous_slice(t, l1, "hash-grid: table")?, pts))
+            }
+            CpuStorage::F64(t) => {
+                CpuStorage::F64(self.forward(contiguous_slice(t, l1, "hash-grid: table")?, pts))
+            }
             _ => candle_core::bail!("hash-grid: table must be f32 or f64"),
         };
         Ok((out, shape))
@@ -313,10 +307,10 @@ impl CustomOp2 for HashScatter {
         let shape = Shape::from((self.rows, self.config.features_per_level));
         let out = match s1 {
             CpuStorage::F32(g) => {
-                CpuStorage::F32(self.scatter(contiguous(g, l1, "gradient")?, pts))
+                CpuStorage::F32(self.scatter(contiguous_slice(g, l1, "hash-grid: gradient")?, pts))
             }
             CpuStorage::F64(g) => {
-                CpuStorage::F64(self.scatter(contiguous(g, l1, "gradient")?, pts))
+                CpuStorage::F64(self.scatter(contiguous_slice(g, l1, "hash-grid: gradient")?, pts))
             }
             _ => candle_core::bail!("hash-grid: gradient must be f32 or f64"),
         };

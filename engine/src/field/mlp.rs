@@ -16,6 +16,7 @@ use candle_core::{
     CpuStorage, CustomOp2, CustomOp3, DType, Device, Layout, Shape, Tensor, Var, WithDType,
 };
 
+use crate::cpu_ops::contiguous_slice;
 use crate::rng::Rng;
 use crate::{EngineError, Result};
 
@@ -259,13 +260,6 @@ fn backward<T: WithDType>(widths: &[usize], x: &[T], params: &[T], grad: &[T]) -
     out
 }
 
-fn slice<'a, T: WithDType>(d: &'a [T], l: &Layout, what: &str) -> candle_core::Result<&'a [T]> {
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&d[a..b]),
-        None => candle_core::bail!("mlp: {what} must be contiguous"),
-    }
-}
-
 /// Fused forward: x [N, in] × params [P] → y [N, out].
 struct FusedMlp {
     widths: Vec<usize>,
@@ -295,14 +289,22 @@ impl CustomOp2 for FusedMlp {
         let n = l1.dims()[0];
         let out = match (s1, s2) {
             (CpuStorage::F32(x), CpuStorage::F32(p)) => CpuStorage::F32(
-                activations(w, slice(x, l1, "input")?, slice(p, l2, "params")?)
-                    .pop()
-                    .unwrap_or_default(),
+                activations(
+                    w,
+                    contiguous_slice(x, l1, "mlp: input")?,
+                    contiguous_slice(p, l2, "mlp: params")?,
+                )
+                .pop()
+                .unwrap_or_default(),
             ),
             (CpuStorage::F64(x), CpuStorage::F64(p)) => CpuStorage::F64(
-                activations(w, slice(x, l1, "input")?, slice(p, l2, "params")?)
-                    .pop()
-                    .unwrap_or_default(),
+                activations(
+                    w,
+                    contiguous_slice(x, l1, "mlp: input")?,
+                    contiguous_slice(p, l2, "mlp: params")?,
+                )
+                .pop()
+                .unwrap_or_default(),
             ),
             _ => candle_core::bail!("mlp: input and parameters must both be f32 or f64"),
         };
@@ -355,17 +357,17 @@ impl CustomOp3 for FusedMlpBackward {
             (CpuStorage::F32(x), CpuStorage::F32(p), CpuStorage::F32(g)) => {
                 CpuStorage::F32(backward(
                     w,
-                    slice(x, l1, "input")?,
-                    slice(p, l2, "params")?,
-                    slice(g, l3, "grad")?,
+                    contiguous_slice(x, l1, "mlp: input")?,
+                    contiguous_slice(p, l2, "mlp: params")?,
+                    contiguous_slice(g, l3, "mlp: grad")?,
                 ))
             }
             (CpuStorage::F64(x), CpuStorage::F64(p), CpuStorage::F64(g)) => {
                 CpuStorage::F64(backward(
                     w,
-                    slice(x, l1, "input")?,
-                    slice(p, l2, "params")?,
-                    slice(g, l3, "grad")?,
+                    contiguous_slice(x, l1, "mlp: input")?,
+                    contiguous_slice(p, l2, "mlp: params")?,
+                    contiguous_slice(g, l3, "mlp: grad")?,
                 ))
             }
             _ => candle_core::bail!("mlp backward: mixed dtypes"),

@@ -14,6 +14,7 @@ use std::sync::Arc;
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, Device, Layout, Shape, Tensor, WithDType};
 use rayon::prelude::*;
 
+use crate::cpu_ops::contiguous_slice;
 use crate::Result;
 
 /// Per-sample constants of a packed batch of rays.
@@ -88,13 +89,6 @@ pub fn composite_composed(sigma: &Tensor, rgb: &Tensor, rays: &PackedRays) -> Re
     Ok(Tensor::cat(&[colour, depth, opacity], 1)?)
 }
 
-fn slice<'a, T: WithDType>(d: &'a [T], l: &Layout, what: &str) -> candle_core::Result<&'a [T]> {
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&d[a..b]),
-        None => candle_core::bail!("composite: {what} must be contiguous"),
-    }
-}
-
 struct Composite {
     rays: Arc<PackedRays>,
 }
@@ -143,12 +137,14 @@ impl CustomOp2 for Composite {
             candle_core::bail!("composite: sigma/rgb sizes do not match the packed rays");
         }
         let out = match (s1, s2) {
-            (CpuStorage::F32(s), CpuStorage::F32(c)) => {
-                CpuStorage::F32(self.forward(slice(s, l1, "sigma")?, slice(c, l2, "rgb")?))
-            }
-            (CpuStorage::F64(s), CpuStorage::F64(c)) => {
-                CpuStorage::F64(self.forward(slice(s, l1, "sigma")?, slice(c, l2, "rgb")?))
-            }
+            (CpuStorage::F32(s), CpuStorage::F32(c)) => CpuStorage::F32(self.forward(
+                contiguous_slice(s, l1, "composite: sigma")?,
+                contiguous_slice(c, l2, "composite: rgb")?,
+            )),
+            (CpuStorage::F64(s), CpuStorage::F64(c)) => CpuStorage::F64(self.forward(
+                contiguous_slice(s, l1, "composite: sigma")?,
+                contiguous_slice(c, l2, "composite: rgb")?,
+            )),
             _ => candle_core::bail!("composite: sigma and rgb must both be f32 or f64"),
         };
         Ok((out, Shape::from((self.rays.num_rays(), 5))))
@@ -247,16 +243,16 @@ impl CustomOp3 for CompositeBackward {
         let out = match (s1, s2, s3) {
             (CpuStorage::F32(s), CpuStorage::F32(c), CpuStorage::F32(j)) => {
                 CpuStorage::F32(self.backward(
-                    slice(s, l1, "sigma")?,
-                    slice(c, l2, "rgb")?,
-                    slice(j, l3, "grad")?,
+                    contiguous_slice(s, l1, "composite: sigma")?,
+                    contiguous_slice(c, l2, "composite: rgb")?,
+                    contiguous_slice(j, l3, "composite: grad")?,
                 ))
             }
             (CpuStorage::F64(s), CpuStorage::F64(c), CpuStorage::F64(j)) => {
                 CpuStorage::F64(self.backward(
-                    slice(s, l1, "sigma")?,
-                    slice(c, l2, "rgb")?,
-                    slice(j, l3, "grad")?,
+                    contiguous_slice(s, l1, "composite: sigma")?,
+                    contiguous_slice(c, l2, "composite: rgb")?,
+                    contiguous_slice(j, l3, "composite: grad")?,
                 ))
             }
             _ => candle_core::bail!("composite backward: mixed dtypes"),
