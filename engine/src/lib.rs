@@ -6,6 +6,7 @@ pub mod camera;
 pub mod checkpoint;
 pub mod cpu_ops;
 pub mod error;
+pub mod eval;
 pub mod field;
 pub mod image_io;
 pub mod optim;
@@ -15,6 +16,7 @@ pub mod rng;
 pub mod scene;
 pub mod stages;
 pub mod style2d;
+pub mod stylized;
 pub mod views;
 pub mod warp;
 

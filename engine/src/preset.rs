@@ -83,6 +83,38 @@ pub fn apply_overrides<T: Serialize + DeserializeOwned>(
     serde_json::from_value(json).map_err(|e| EngineError::config("config", e.to_string()))
 }
 
+/// Applies the overrides addressed to `stage` (`<stage>.<key>=…`) to its configuration;
+/// overrides of other stages are left out. A key naming no stage is an error.
+pub fn stage_overrides<T: Serialize + DeserializeOwned>(
+    config: &T,
+    stage: &str,
+    overrides: &[(String, serde_json::Value)],
+) -> Result<T> {
+    let mut mine = Vec::new();
+    for (key, value) in overrides {
+        let (prefix, rest) = key.split_once('.').unwrap_or((key, ""));
+        if !crate::stages::STAGES.contains(&prefix) || rest.is_empty() {
+            return Err(EngineError::config(
+                key,
+                format!(
+                    "an override must start with a stage name ({}), e.g. nerf_pretrain.steps=500",
+                    crate::stages::STAGES.join(", ")
+                ),
+            ));
+        }
+        if prefix == stage {
+            mine.push((rest.to_string(), value.clone()));
+        }
+    }
+    apply_overrides(config, &mine).map_err(|e| match e {
+        EngineError::Config { field, reason } => EngineError::Config {
+            field: format!("{stage}.{field}"),
+            reason,
+        },
+        e => e,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -97,6 +129,31 @@ mod tests {
         steps: u64,
         lr: f64,
         grid: Inner,
+    }
+
+    #[test]
+    fn stage_overrides_pick_their_stage_and_reject_unknown_stages() {
+        let c = Cfg {
+            steps: 10,
+            lr: 0.1,
+            grid: Inner { levels: 4 },
+        };
+        let o = vec![
+            parse_override("nerf_pretrain.steps=25").unwrap(),
+            parse_override("mutual_learning.steps=7").unwrap(),
+        ];
+        assert_eq!(stage_overrides(&c, "nerf_pretrain", &o).unwrap().steps, 25);
+        assert_eq!(stage_overrides(&c, "render_views", &o).unwrap().steps, 10);
+        let bad = vec![parse_override("steps=3").unwrap()];
+        let e = stage_overrides(&c, "nerf_pretrain", &bad)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stage name"), "{e}");
+        let wrong = vec![parse_override("nerf_pretrain.nope=3").unwrap()];
+        let e = stage_overrides(&c, "nerf_pretrain", &wrong)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("nerf_pretrain.nope"), "{e}");
     }
 
     #[test]

@@ -8,6 +8,7 @@ mod bench_vgg;
 mod common;
 mod coordinator;
 mod nerf;
+mod run;
 mod scene;
 mod stylize;
 mod weights;
@@ -55,6 +56,12 @@ pub enum Command {
     Weights(weights::WeightsCommand),
     /// Run the coordinator: the gRPC job and worker APIs, SQLite, artifacts, metrics.
     Coordinator(Box<coordinator::CoordinatorCommand>),
+    /// Run all five stages locally in one process (no server): NeRF pretraining, view
+    /// rendering, decoder pretraining, mutual learning and stylized rendering.
+    Run(Box<run::RunArgs>),
+    /// Evaluate a finished `run`: consistency (warped error) and style fidelity of NeRF→AdaIN,
+    /// the fine-tuned decoder and the stylized NeRF.
+    Eval(run::EvalArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -90,6 +97,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Stylize(cmd) => stylize::run(cmd),
         Command::Weights(cmd) => weights::run(cmd),
         Command::Coordinator(cmd) => coordinator::run(*cmd),
+        Command::Run(args) => run::run(*args),
+        Command::Eval(args) => run::eval(args),
         Command::Bench(BenchCommand::Coordinator(options)) => bench_coordinator::run(options),
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),

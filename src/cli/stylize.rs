@@ -10,8 +10,9 @@ use stylenerf_engine::image_io;
 use stylenerf_engine::style2d::decoder::Decoder;
 use stylenerf_engine::style2d::encoder::VggEncoder;
 use stylenerf_engine::style2d::fit::{fit_pair, FitConfig};
-use stylenerf_engine::style2d::images;
+use stylenerf_engine::style2d::images::{self, StyleImage};
 use stylenerf_engine::style2d::network::AdaInNet;
+use stylenerf_engine::style2d::painted;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 
 #[derive(Debug, Subcommand)]
@@ -25,6 +26,18 @@ pub enum StylizeCommand {
     /// decoder trained by `decoder_pretrain`, or AdaIN's decoder.pth together with
     /// vgg_normalised.pth as --encoder, for instant feed-forward results.
     Image(ImageArgs),
+    /// Write the bundled styles (painted by code, see docs/STYLE2D.md) as PNG files.
+    ExportStyles(ExportArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ExportArgs {
+    /// Output folder; each style is written as `<name>.png`.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Side of the images.
+    #[arg(long, default_value_t = StyleImage::BUILTIN_SIZE)]
+    size: u32,
 }
 
 #[derive(Debug, Args)]
@@ -32,9 +45,9 @@ pub struct ImageArgs {
     /// Content image.
     #[arg(long)]
     content: PathBuf,
-    /// Style image.
+    /// Style image, or `builtin:<name>` for a bundled style (mosaic, waves, dots).
     #[arg(long)]
-    style: PathBuf,
+    style: String,
     /// Output PNG.
     #[arg(short, long)]
     output: PathBuf,
@@ -67,7 +80,18 @@ pub struct ImageArgs {
 pub fn run(cmd: StylizeCommand) -> anyhow::Result<()> {
     match cmd {
         StylizeCommand::Image(args) => image(args),
+        StylizeCommand::ExportStyles(args) => export_styles(args),
     }
+}
+
+fn export_styles(a: ExportArgs) -> anyhow::Result<()> {
+    for name in painted::NAMES {
+        let img = painted::paint(name, a.size).expect("bundled style");
+        let path = a.output.join(format!("{name}.png"));
+        image_io::save_rgb_png(&path, a.size, a.size, img.as_raw())?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
 }
 
 fn image(a: ImageArgs) -> anyhow::Result<()> {
@@ -75,7 +99,7 @@ fn image(a: ImageArgs) -> anyhow::Result<()> {
     let weights = EncoderWeights::load_or_bundled(a.encoder.as_deref())?;
     let encoder = VggEncoder::new(&weights, &dev)?;
     let content = images::to_tensor(&image_io::load_rgb(&a.content)?, a.size, &dev)?;
-    let style = images::to_tensor(&image_io::load_rgb(&a.style)?, a.size, &dev)?;
+    let style = images::to_tensor(&StyleImage::load(&a.style)?.image, a.size, &dev)?;
     let decoder = match &a.decoder {
         Some(p) => {
             let (d, trained_with) = Decoder::load(p, &dev)?;

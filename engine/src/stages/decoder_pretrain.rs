@@ -16,10 +16,9 @@ use std::path::Path;
 use std::time::Instant;
 
 use candle_core::{Device, Tensor};
-use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
 
-use crate::checkpoint::{write_atomic, CheckpointDir};
+use crate::checkpoint::{write_json_atomic, CheckpointDir};
 use crate::optim::{Adam, AdamConfig};
 use crate::preset::Preset;
 use crate::rng::Rng;
@@ -27,6 +26,7 @@ use crate::stages::{Outcome, Progress, StageControl};
 use crate::style2d::arch::VggArch;
 use crate::style2d::decoder::Decoder;
 use crate::style2d::encoder::VggEncoder;
+pub use crate::style2d::images::StyleImage;
 use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc};
 use crate::style2d::network::{AdaInNet, StyleTarget};
 use crate::style2d::style_features::{crop_vectors, CropConfig};
@@ -121,13 +121,6 @@ impl DecoderPretrainConfig {
     }
 }
 
-/// A style image with its name.
-#[derive(Debug, Clone)]
-pub struct StyleImage {
-    pub name: String,
-    pub image: Rgb32FImage,
-}
-
 /// What `styles.json` holds.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StylesFile {
@@ -180,7 +173,7 @@ struct CheckpointMeta {
 }
 
 /// The views cropped (top-left) to multiples of the encoder's stride.
-fn crop_views(v: &RenderedViews) -> Result<RenderedViews> {
+pub(crate) fn crop_views(v: &RenderedViews) -> Result<RenderedViews> {
     let s = VggArch::STRIDE as u32;
     let (w, h) = (v.width / s * s, v.height / s * s);
     if w < 2 * s || h < 2 * s {
@@ -507,7 +500,7 @@ pub fn run(
             })
             .collect::<Result<_>>()?,
     };
-    write_atomic(&out.join("styles.json"), &to_json(&styles_file)?)?;
+    write_json_atomic(&out.join("styles.json"), &styles_file)?;
     let report = DecoderPretrainReport {
         steps: cfg.steps,
         resumed_from: start,
@@ -517,12 +510,8 @@ pub fn run(
         style_loss: st / n,
         vae_reconstruction: vae_losses.reconstruction,
     };
-    write_atomic(&out.join("metrics.json"), &to_json(&report)?)?;
+    write_json_atomic(&out.join("metrics.json"), &report)?;
     Ok(Outcome::Done(report))
-}
-
-fn to_json<T: Serialize>(v: &T) -> Result<Vec<u8>> {
-    serde_json::to_vec_pretty(v).map_err(|e| EngineError::artifact("json", e.to_string()))
 }
 
 /// Writes rows of content | style | output (each `[1, 3, H, W]` / `[3, H, W]`), the style

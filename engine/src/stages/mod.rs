@@ -5,6 +5,17 @@
 pub mod control;
 
 pub use control::{Outcome, Progress, StageControl};
+
+/// The stages of a job, in order.
+pub const STAGES: [&str; 5] = [
+    "nerf_pretrain",
+    "render_views",
+    "decoder_pretrain",
+    "mutual_learning",
+    "render_stylized",
+];
 pub mod decoder_pretrain;
+pub mod mutual_learning;
 pub mod nerf_pretrain;
+pub mod render_stylized;
 pub mod render_views;

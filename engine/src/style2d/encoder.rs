@@ -2,12 +2,23 @@
 //! weights (input gradient only), ReLU and 2×2 max-pools, exposing relu1_1, relu2_1, relu3_1
 //! and relu4_1. The source's preprocessing is folded into conv1_1, so the encoder takes RGB
 //! in [0, 1] whatever the weights came from.
+//!
+//! Activation scale: a plain VGG's activations grow with depth (the Caffe VGG-16's relu4_1
+//! averages in the hundreds), which makes the decoder's input and the style loss's layers
+//! wildly different in scale, and a decoder trained from scratch on them learns noise. As in
+//! Gatys et al.'s and AdaIN's `vgg_normalised`, each layer is rescaled so its mean activation
+//! over a fixed set of calibration images is 1. ReLU and max-pooling commute with positive
+//! scaling, so folding the scales into the weights and biases changes each feature map by a
+//! constant factor and nothing else. Weights that are already normalised (AdaIN's
+//! `vgg_normalised.pth`, whose decoder expects its exact scale) are left as they are.
 
 use candle_core::{Device, Result, Tensor};
 
 use super::arch::VggArch;
 use super::frozen_conv::FrozenConv;
+use super::images;
 use super::pad::reflection_pad2d;
+use super::painted;
 use super::resample::max_pool2x2;
 use super::weights::EncoderWeights;
 
@@ -42,20 +53,29 @@ pub struct VggEncoder {
 
 impl VggEncoder {
     pub fn new(weights: &EncoderWeights, device: &Device) -> Result<Self> {
+        Self::build(weights, !weights.activations_normalised(), device)
+    }
+
+    fn build(weights: &EncoderWeights, normalise: bool, device: &Device) -> Result<Self> {
         let first = weights
             .folded_first_conv()
             .map_err(candle_core::Error::wrap)?;
+        let mut convs: Vec<(Tensor, Tensor)> = std::iter::once(&first)
+            .chain(&weights.convs[1..])
+            .map(|w| (w.weight.clone(), w.bias.clone()))
+            .collect();
+        if normalise {
+            normalise_activations(weights.arch, &mut convs, &calibration_images()?)?;
+        }
         let layers = weights
             .arch
             .convs()
             .iter()
-            .zip(&weights.convs)
-            .enumerate()
-            .map(|(i, (spec, w))| {
-                let w = if i == 0 { &first } else { w };
+            .zip(convs)
+            .map(|(spec, (w, b))| {
                 Ok(Layer {
-                    conv: FrozenConv::new(w.weight.to_device(device)?)?,
-                    bias: w.bias.to_device(device)?.reshape((1, spec.c_out, 1, 1))?,
+                    conv: FrozenConv::new(w.to_device(device)?)?,
+                    bias: b.to_device(device)?.reshape((1, spec.c_out, 1, 1))?,
                     pool_before: spec.pool_before,
                     tap: spec.tap,
                 })
@@ -128,6 +148,62 @@ impl VggEncoder {
     }
 }
 
+/// Side of the calibration images.
+const CALIBRATION_SIZE: u32 = 64;
+
+/// The calibration set of [`normalise_activations`]: the painted styles (busy textures) and a
+/// smooth colour gradient (like a plain content image), `[N, 3, 64, 64]` on the CPU.
+fn calibration_images() -> Result<Tensor> {
+    let n = CALIBRATION_SIZE;
+    let mut imgs: Vec<Tensor> = painted::NAMES
+        .iter()
+        .map(|name| {
+            let img = painted::paint(name, n).expect("bundled style");
+            images::hwc_to_tensor(img.as_raw(), n as usize, n as usize, &Device::Cpu)
+                .map_err(candle_core::Error::wrap)
+        })
+        .collect::<Result<_>>()?;
+    let gradient: Vec<f32> = (0..n * n)
+        .flat_map(|k| {
+            let (u, v) = ((k % n) as f32 / n as f32, (k / n) as f32 / n as f32);
+            [0.2 + 0.6 * u, 0.3 + 0.4 * v, 0.8 - 0.5 * u * v]
+        })
+        .collect();
+    imgs.push(
+        images::hwc_to_tensor(&gradient, n as usize, n as usize, &Device::Cpu)
+            .map_err(candle_core::Error::wrap)?,
+    );
+    Tensor::cat(&imgs, 0)
+}
+
+/// Rescales each `(weight, bias)` so that its layer's mean activation over `calib` is 1,
+/// compensating for the previous layer's scale (see the module docs).
+fn normalise_activations(
+    arch: VggArch,
+    convs: &mut [(Tensor, Tensor)],
+    calib: &Tensor,
+) -> Result<()> {
+    let mut h = calib.clone();
+    let mut prev_scale = 1.0f64;
+    for (spec, (w, b)) in arch.convs().iter().zip(convs.iter_mut()) {
+        if spec.pool_before {
+            h = max_pool2x2(&h)?;
+        }
+        // The input is the previous layer's original activation divided by `prev_scale`.
+        let w_in = (&*w * prev_scale)?;
+        let a = reflection_pad2d(&h, 1)?
+            .conv2d(&w_in, 0, 1, 1, 1)?
+            .broadcast_add(&b.reshape((1, spec.c_out, 1, 1))?)?
+            .relu()?;
+        let scale = f64::from(a.mean_all()?.to_scalar::<f32>()?).max(1e-6);
+        *w = (w_in / scale)?;
+        *b = (&*b / scale)?;
+        h = (a / scale)?;
+        prev_scale = scale;
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -167,7 +243,7 @@ mod tests {
     #[test]
     fn preprocessing_is_folded_exactly() {
         let w = random_weights(VggArch::Vgg16, Preprocess::caffe([104.0, 117.0, 123.0]));
-        let enc = VggEncoder::new(&w, &Device::Cpu).unwrap();
+        let enc = VggEncoder::build(&w, false, &Device::Cpu).unwrap();
         let x = ((crate::style2d::gradcheck::random(&[1, 3, 16, 16], 5) + 1.0).unwrap() * 0.5)
             .unwrap()
             .to_dtype(candle_core::DType::F32)
@@ -200,6 +276,37 @@ mod tests {
             .to_scalar::<f32>()
             .unwrap();
         assert!(err < 2e-3, "folded conv1_1 differs by {err}");
+    }
+
+    #[test]
+    fn normalisation_scales_each_feature_to_unit_mean() {
+        let w = random_weights(VggArch::Vgg16, Preprocess::caffe([104.0, 117.0, 123.0]));
+        let raw = VggEncoder::build(&w, false, &Device::Cpu).unwrap();
+        let norm = VggEncoder::new(&w, &Device::Cpu).unwrap();
+        let calib = calibration_images().unwrap();
+        let x = ((crate::style2d::gradcheck::random(&[1, 3, 32, 32], 4) + 1.0).unwrap() * 0.5)
+            .unwrap()
+            .to_dtype(candle_core::DType::F32)
+            .unwrap();
+        let mean = |t: &Tensor| t.mean_all().unwrap().to_scalar::<f32>().unwrap();
+        let (fr, fnorm) = (raw.features(&x).unwrap(), norm.features(&x).unwrap());
+        for (k, f) in norm.features(&calib).unwrap().iter().enumerate() {
+            assert!((mean(f) - 1.0).abs() < 1e-3, "tap {k}: mean {}", mean(f));
+            // On another image the normalised feature is the raw one times a constant.
+            let ratio = mean(&fnorm[k]) / mean(&fr[k]);
+            let err = ((&fr[k] * f64::from(ratio)).unwrap() - &fnorm[k])
+                .unwrap()
+                .abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap();
+            assert!(
+                err < 1e-3 * mean(&fnorm[k]).max(1.0) * 10.0,
+                "tap {k}: {err}"
+            );
+        }
     }
 
     #[test]

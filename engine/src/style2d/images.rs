@@ -6,7 +6,58 @@ use image::imageops::FilterType;
 use image::Rgb32FImage;
 
 use super::arch::VggArch;
-use crate::Result;
+use crate::{image_io, EngineError, Result};
+
+/// A style image with its name.
+#[derive(Debug, Clone)]
+pub struct StyleImage {
+    pub name: String,
+    pub image: Rgb32FImage,
+}
+
+impl StyleImage {
+    /// Prefix of a bundled style's spec, e.g. `builtin:waves`.
+    pub const BUILTIN: &'static str = "builtin:";
+
+    /// Side of a bundled style image.
+    pub const BUILTIN_SIZE: u32 = 256;
+
+    /// Reads a style from `spec`: `builtin:<name>` for a bundled style (see
+    /// [`super::painted`]), otherwise an image file whose stem names the style.
+    pub fn load(spec: &str) -> Result<Self> {
+        if let Some(name) = spec.strip_prefix(Self::BUILTIN) {
+            let image = super::painted::paint(name, Self::BUILTIN_SIZE).ok_or_else(|| {
+                EngineError::config(
+                    "style",
+                    format!(
+                        "unknown bundled style `{name}` (bundled: {})",
+                        super::painted::NAMES.join(", ")
+                    ),
+                )
+            })?;
+            return Ok(Self {
+                name: name.to_string(),
+                image,
+            });
+        }
+        let path = std::path::Path::new(spec);
+        Ok(Self {
+            name: path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| spec.to_string()),
+            image: image_io::load_rgb(path)?,
+        })
+    }
+
+    /// The bundled styles, in their default order.
+    pub fn bundled() -> Vec<Self> {
+        super::painted::NAMES
+            .iter()
+            .map(|n| Self::load(&format!("{}{n}", Self::BUILTIN)).expect("bundled style"))
+            .collect()
+    }
+}
 
 /// Resizes `img` so its longer side is at most `max_side` (never enlarging) and both sides are
 /// multiples of [`VggArch::STRIDE`], then returns it as `[1, 3, H, W]`.

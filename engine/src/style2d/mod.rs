@@ -13,6 +13,7 @@ pub mod images;
 pub mod losses;
 pub mod network;
 pub mod pad;
+pub mod painted;
 pub mod resample;
 pub mod st_file;
 pub mod style_features;

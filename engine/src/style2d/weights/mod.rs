@@ -361,6 +361,13 @@ impl EncoderWeights {
     }
 
     /// conv1_1 with [`Self::input_transform`] folded in: it takes RGB in [0, 1] directly.
+    /// Whether the activations are already normalised to a mean of about 1 per layer (AdaIN's
+    /// `vgg_normalised.pth`, recognised by its 1×1 preprocessing convolution); the encoder
+    /// normalises all other weights itself.
+    pub fn activations_normalised(&self) -> bool {
+        self.preprocess.conv.is_some()
+    }
+
     pub fn folded_first_conv(&self) -> Result<ConvWeights> {
         let (a, c) = self.input_transform()?;
         let first = &self.convs[0];

@@ -1,0 +1,529 @@
+//! Stage 4, `mutual_learning`: the stylized NeRF and the 2D decoder learn from each other.
+//!
+//! Each step takes a training view i, a style j and a `patch`×`patch` window of the view:
+//! - the stylized NeRF renders the window's rays with latent l_ij (frozen density, cached
+//!   surface samples — see [`crate::stylized::surface`]);
+//! - the decoder stylizes view i with style j (AdaIN on the whole view's relu4_1, decoded on
+//!   the window's part of the feature map);
+//! - L_mimic = mean ‖C_nerf − C_2d‖² over the window.
+//!
+//! The style module and the latents minimise L_N = L_mimic + λ_d L_d (C_2d detached). After the
+//! first `decoder_freeze` fraction of the steps, the decoder also learns, minimising
+//! L_C = λ_m L_mimic + λ_s L_s + L_c (C_nerf detached): the NeRF's multi-view-consistent colours
+//! pull the decoder towards consistency while the style and content losses keep it stylizing.
+//! While the decoder is frozen its outputs are cached per (view, style).
+//!
+//! Output folder: `style_module.safetensors`, `latents.safetensors` (codes, μ, σ) with
+//! `latents.json` (style names), `decoder.safetensors` (fine-tuned), `metrics.json` (written
+//! last), and `ckpt/` (style module, latents, decoder, both optimisers' moments, RNG).
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::checkpoint::{write_json_atomic, CheckpointDir};
+use crate::field::saved;
+use crate::optim::{Adam, AdamConfig};
+use crate::preset::Preset;
+use crate::rng::Rng;
+use crate::stages::decoder_pretrain::{crop_views, StylesFile};
+use crate::stages::{Outcome, Progress, StageControl};
+use crate::style2d::adain::adain;
+use crate::style2d::arch::VggArch;
+use crate::style2d::decoder::Decoder;
+use crate::style2d::encoder::VggEncoder;
+use crate::style2d::images::{hwc_to_tensor, StyleImage};
+use crate::style2d::losses::{content_loss, mse, style_loss};
+use crate::style2d::network::{AdaInNet, StyleTarget};
+use crate::style2d::weights::EncoderWeights;
+use crate::stylized::latents::LatentCodes;
+use crate::stylized::style_module::{StyleModule, StyleModuleConfig};
+use crate::stylized::surface::SurfaceSamples;
+use crate::views::RenderedViews;
+use crate::{EngineError, Result};
+
+/// Configuration of the stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MutualConfig {
+    pub steps: u64,
+    /// Side of the square window trained per step (a multiple of 8).
+    pub patch: usize,
+    /// Learning rate of the style module and the latents.
+    pub lr: f64,
+    /// Learning rate of the decoder.
+    pub decoder_lr: f64,
+    /// λ_d, on the proper Gaussian NLL (see [`crate::stylized::latents`]).
+    pub latent_weight: f64,
+    /// λ_s.
+    pub style_weight: f64,
+    /// λ_m.
+    pub mimic_weight: f64,
+    /// Fraction of the steps during which the decoder is frozen.
+    pub decoder_freeze: f64,
+    /// Fine-tune the decoder at all (off: the "no decoder fine-tuning" ablation).
+    pub finetune_decoder: bool,
+    /// Learn one latent per (view, style) (off: one fixed code per style, its mean).
+    pub learnable_latents: bool,
+    pub style_module: StyleModuleConfig,
+    /// Longer side the style images are resized to for their statistics.
+    pub style_size: u32,
+    pub seed: u64,
+}
+
+impl MutualConfig {
+    pub fn preset(preset: Preset) -> Self {
+        let base = Self {
+            steps: 600,
+            patch: 64,
+            lr: 2e-3,
+            decoder_lr: 1e-4,
+            latent_weight: 1e-4,
+            style_weight: 1.0,
+            mimic_weight: 10.0,
+            decoder_freeze: 0.4,
+            finetune_decoder: true,
+            learnable_latents: true,
+            style_module: StyleModuleConfig::default(),
+            style_size: 256,
+            seed: 0,
+        };
+        match preset {
+            Preset::Tiny => Self {
+                steps: 12,
+                patch: 16,
+                style_size: 32,
+                style_module: StyleModuleConfig {
+                    hidden: 16,
+                    hidden_layers: 2,
+                    frequencies: 2,
+                    use_geometry: true,
+                },
+                ..base
+            },
+            Preset::Quick => base,
+            Preset::Standard => Self {
+                steps: 3000,
+                ..base
+            },
+            Preset::Paper => Self {
+                steps: 20_000,
+                style_module: StyleModuleConfig {
+                    hidden: 128,
+                    hidden_layers: 4,
+                    ..StyleModuleConfig::default()
+                },
+                ..base
+            },
+        }
+    }
+}
+
+/// Loss values at one step.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MutualRecord {
+    pub step: u64,
+    pub mimic: f32,
+    pub latent_nll: f32,
+    /// Decoder losses (0 while it is frozen).
+    pub content: f32,
+    pub style: f32,
+}
+
+/// The stage's metrics.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MutualReport {
+    pub steps: u64,
+    pub resumed_from: u64,
+    pub train_seconds: f64,
+    pub loss_log: Vec<MutualRecord>,
+    /// Mean L_mimic over the first and the last 10% of the steps.
+    pub mimic_start: f32,
+    pub mimic_end: f32,
+    /// Relative change of the decoder's weights, ‖θ_end − θ_start‖ / ‖θ_start‖.
+    pub decoder_change: f32,
+    /// Mean |l − μ_j| / σ_j of the final codes.
+    pub latent_deviation: f32,
+}
+
+/// What `latents.json` holds: the style names, in latent order.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LatentsFile {
+    pub styles: Vec<String>,
+    pub num_views: usize,
+}
+
+#[derive(Serialize, Deserialize)]
+struct CheckpointMeta {
+    step: u64,
+    rng: Rng,
+    config: MutualConfig,
+    loss_log: Vec<MutualRecord>,
+    train_seconds: f64,
+    /// Steps the decoder's optimiser has taken (it starts after the freeze).
+    decoder_steps: u64,
+}
+
+/// What the stage reads.
+#[derive(Debug, Clone, Copy)]
+pub struct Inputs<'a> {
+    /// The `nerf_pretrain` output folder.
+    pub field_dir: &'a Path,
+    /// The `render_views` output (its training views are the training instances).
+    pub views: &'a RenderedViews,
+    /// The `decoder_pretrain` output folder (`decoder.safetensors`, `styles.json`).
+    pub decoder_dir: &'a Path,
+    pub styles: &'a [StyleImage],
+    pub encoder: &'a EncoderWeights,
+}
+
+/// The training views with what every step reuses.
+struct TrainingViews {
+    views: RenderedViews,
+    /// Index into `views` of each training view.
+    indices: Vec<usize>,
+    surfaces: Vec<SurfaceSamples>,
+    /// relu4_1 of each training view.
+    features: Vec<Tensor>,
+}
+
+impl TrainingViews {
+    fn load(
+        inputs: &Inputs,
+        encoder: &VggEncoder,
+        control: &StageControl,
+        device: &Device,
+    ) -> Result<Self> {
+        let views = crop_views(inputs.views)?;
+        let indices = views.train_indices();
+        if indices.is_empty() {
+            return Err(EngineError::config(
+                "views",
+                "the rendered views have no training views",
+            ));
+        }
+        let (field, meta) = saved::load(inputs.field_dir, device)?;
+        let (mut surfaces, mut features) = (Vec::new(), Vec::new());
+        for (k, &i) in indices.iter().enumerate() {
+            if control.is_cancelled() {
+                return Err(EngineError::Cancelled);
+            }
+            surfaces.push(SurfaceSamples::for_camera(
+                &field,
+                &meta,
+                &views.views[i].camera,
+            )?);
+            let x = hwc_to_tensor(
+                views.rgb(i),
+                views.width as usize,
+                views.height as usize,
+                device,
+            )?;
+            features.push(encoder.relu4_1(&x)?.detach());
+            control.report(&Progress {
+                stage: "mutual_learning".into(),
+                step: 0,
+                total: 0,
+                metrics: [("views_prepared".to_string(), (k + 1) as f64)].into(),
+                ..Default::default()
+            });
+        }
+        Ok(Self {
+            views,
+            indices,
+            surfaces,
+            features,
+        })
+    }
+
+    fn width(&self) -> usize {
+        self.views.width as usize
+    }
+
+    fn height(&self) -> usize {
+        self.views.height as usize
+    }
+}
+
+/// A square window of a view, in pixels, aligned to the encoder's stride.
+#[derive(Debug, Clone, Copy)]
+struct Window {
+    x: usize,
+    y: usize,
+    size: usize,
+}
+
+impl Window {
+    fn random(width: usize, height: usize, size: usize, rng: &mut Rng) -> Self {
+        let s = VggArch::STRIDE;
+        let size = size.min(width).min(height) / s * s;
+        let x = rng.below((width - size) / s + 1) * s;
+        let y = rng.below((height - size) / s + 1) * s;
+        Self { x, y, size }
+    }
+
+    /// Row-major pixel indices of the window in a `width`-wide image.
+    fn pixels(&self, width: usize) -> Vec<usize> {
+        (self.y..self.y + self.size)
+            .flat_map(|r| (self.x..self.x + self.size).map(move |c| r * width + c))
+            .collect()
+    }
+
+    /// The window of a `[B, C, H, W]` map at `1/scale` resolution.
+    fn crop(&self, t: &Tensor, scale: usize) -> Result<Tensor> {
+        let (x, y, s) = (self.x / scale, self.y / scale, self.size / scale);
+        Ok(t.narrow(2, y, s)?.narrow(3, x, s)?)
+    }
+}
+
+/// `[1, 3, h, w]` → `[h · w, 3]` (pixel rows).
+fn pixel_rows(img: &Tensor) -> Result<Tensor> {
+    let (_, c, h, w) = img.dims4()?;
+    Ok(img.squeeze(0)?.reshape((c, h * w))?.t()?.contiguous()?)
+}
+
+/// Reads `styles.json` of the decoder stage and checks it matches the job's styles.
+pub fn read_styles_file(decoder_dir: &Path, styles: &[StyleImage]) -> Result<StylesFile> {
+    let path = decoder_dir.join("styles.json");
+    let bytes = std::fs::read(&path).map_err(|e| EngineError::io(&path, e))?;
+    let file: StylesFile = serde_json::from_slice(&bytes)
+        .map_err(|e| EngineError::artifact(&path, format!("cannot parse: {e}")))?;
+    if file.styles.len() != styles.len() {
+        return Err(EngineError::artifact(
+            &path,
+            format!(
+                "{} styles recorded, the job has {}",
+                file.styles.len(),
+                styles.len()
+            ),
+        ));
+    }
+    Ok(file)
+}
+
+/// The decoder's weights as one flat vector (for measuring how much they changed).
+fn flat_weights(decoder: &Decoder) -> Result<Tensor> {
+    let parts = decoder
+        .vars()
+        .iter()
+        .map(|(_, v)| v.as_tensor().flatten_all())
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    Ok(Tensor::cat(&parts, 0)?)
+}
+
+/// Runs the stage; writes the outputs into `out`. Resumes from `out/ckpt`.
+pub fn run(
+    inputs: Inputs,
+    cfg: &MutualConfig,
+    out: &Path,
+    control: &StageControl,
+    device: &Device,
+) -> Result<Outcome<MutualReport>> {
+    if cfg.patch < VggArch::STRIDE {
+        return Err(EngineError::config(
+            "mutual_learning.patch",
+            format!("must be at least {}", VggArch::STRIDE),
+        ));
+    }
+    let styles_file = read_styles_file(inputs.decoder_dir, inputs.styles)?;
+    let (decoder, _) = Decoder::load(&inputs.decoder_dir.join("decoder.safetensors"), device)?;
+    let net = AdaInNet {
+        encoder: VggEncoder::new(inputs.encoder, device)?,
+        decoder,
+    };
+    let targets: Vec<StyleTarget> = inputs
+        .styles
+        .iter()
+        .map(|s| {
+            let t = crate::style2d::images::to_tensor(&s.image, cfg.style_size, device)?;
+            Ok(net.style_target(&t)?)
+        })
+        .collect::<Result<_>>()?;
+    let data = TrainingViews::load(&inputs, &net.encoder, control, device)?;
+    let (n_views, n_styles) = (data.indices.len(), inputs.styles.len());
+    let priors: Vec<_> = styles_file
+        .styles
+        .iter()
+        .map(|s| s.latent.clone())
+        .collect();
+    let mut rng = Rng::new(cfg.seed);
+    let latents = if cfg.learnable_latents {
+        LatentCodes::sample(&priors, n_views, &mut rng, device)?
+    } else {
+        LatentCodes::means(&priors, n_views, device)?
+    };
+    let geometry_dim = data.surfaces[0].geometry_dim;
+    let module = StyleModule::new(
+        cfg.style_module,
+        geometry_dim,
+        latents.dim,
+        cfg.seed,
+        DType::F32,
+        device,
+    )?;
+    let mut nerf_vars = module.vars();
+    if cfg.learnable_latents {
+        nerf_vars.push(latents.var());
+    }
+    let mut adam_nerf = Adam::new(nerf_vars, AdamConfig::default())?;
+    let mut adam_dec = Adam::new(net.decoder.vars(), AdamConfig::default())?;
+    let decoder_start = flat_weights(&net.decoder)?;
+
+    let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
+    let (mut start, mut loss_log, mut seconds_before) = (0, Vec::new(), 0.0);
+    if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
+        crate::field::mlp::load_vars(&module.vars(), &c.tensors, ckpt.path())?;
+        let codes = c
+            .tensors
+            .get("latents.codes")
+            .ok_or_else(|| EngineError::artifact(ckpt.path(), "checkpoint has no latent codes"))?;
+        latents.set_codes(codes)?;
+        net.decoder.set_tensors(&c.tensors)?;
+        adam_nerf.load_state(&c.tensors, c.meta.step)?;
+        adam_dec.load_state(&c.tensors, c.meta.decoder_steps)?;
+        (start, rng, loss_log, seconds_before) = (
+            c.meta.step,
+            c.meta.rng,
+            c.meta.loss_log,
+            c.meta.train_seconds,
+        );
+        tracing::info!(step = start, "mutual_learning: resuming from checkpoint");
+    }
+    let freeze_until = if cfg.finetune_decoder {
+        (cfg.steps as f64 * cfg.decoder_freeze).round() as u64
+    } else {
+        u64::MAX
+    };
+    // Frozen-decoder outputs per (view, style), as pixel rows [H·W, 3].
+    let mut frozen: HashMap<(usize, usize), Tensor> = HashMap::new();
+    let started = Instant::now();
+    let mut last_ckpt = Instant::now();
+    for step in start..cfg.steps {
+        let (v, s) = (rng.below(n_views), rng.below(n_styles));
+        let window = Window::random(data.width(), data.height(), cfg.patch, &mut rng);
+        let pixels = window.pixels(data.width());
+        let pixel_idx = Tensor::from_vec(
+            pixels.iter().map(|&p| p as u32).collect::<Vec<_>>(),
+            pixels.len(),
+            device,
+        )?;
+        let code = latents.code(v, s)?;
+        let batch = data.surfaces[v].batch(&pixels, device)?;
+        let c_nerf = module.render(&batch, &code)?;
+        let train_decoder = step >= freeze_until;
+        let target = adain(&data.features[v], &targets[s].stats[3], 1.0)?;
+        let (c_2d, decoder_terms) = if train_decoder {
+            // Decode the window's part of the AdaIN target (statistics of the whole view).
+            let feat = window.crop(&target, VggArch::STRIDE)?;
+            let o = net.decoder.forward(&feat)?;
+            let feats = net.encoder.features(&o)?;
+            let lc = content_loss(&feats[3], &feat)?;
+            let ls = style_loss(&feats, &targets[s].stats)?;
+            (pixel_rows(&o)?, Some((lc, ls)))
+        } else {
+            if !frozen.contains_key(&(v, s)) {
+                let o = net.decoder.forward(&target)?.detach();
+                frozen.insert((v, s), pixel_rows(&o)?);
+            }
+            (frozen[&(v, s)].index_select(&pixel_idx, 0)?, None)
+        };
+        let mimic_nerf = mse(&c_nerf, &c_2d.detach())?;
+        let nll = latents.nll(v, s)?;
+        let mut total = (&mimic_nerf + (&nll * cfg.latent_weight)?)?;
+        let mut rec = MutualRecord {
+            step: step + 1,
+            mimic: mimic_nerf.to_scalar()?,
+            latent_nll: nll.to_scalar()?,
+            content: 0.0,
+            style: 0.0,
+        };
+        if let Some((lc, ls)) = &decoder_terms {
+            let mimic_2d = mse(&c_2d, &c_nerf.detach())?;
+            let l_c = (((mimic_2d * cfg.mimic_weight)? + (ls * cfg.style_weight)?)? + lc)?;
+            total = (total + l_c)?;
+            rec.content = lc.to_scalar()?;
+            rec.style = ls.to_scalar()?;
+        }
+        let grads = total.backward()?;
+        adam_nerf.step(&grads, cfg.lr)?;
+        if train_decoder {
+            adam_dec.step(&grads, cfg.decoder_lr)?;
+        }
+        let done = step + 1;
+        loss_log.push(rec);
+        let mut p = Progress {
+            stage: "mutual_learning".into(),
+            step: done,
+            total: cfg.steps,
+            loss: Some(rec.mimic as f64),
+            resumed_from: start,
+            ..Default::default()
+        };
+        p.metrics.insert("mimic".into(), rec.mimic as f64);
+        p.metrics.insert("latent_nll".into(), rec.latent_nll as f64);
+        if train_decoder {
+            p.metrics.insert("style".into(), rec.style as f64);
+            p.metrics.insert("content".into(), rec.content as f64);
+        }
+        control.report(&p);
+        let stop = control.should_stop(done);
+        if done < cfg.steps && (stop || control.checkpoint_due(done, last_ckpt)) {
+            let mut tensors: Vec<(String, Tensor)> = module
+                .vars()
+                .into_iter()
+                .map(|(n, v)| (n, v.as_tensor().clone()))
+                .collect();
+            tensors.push(("latents.codes".into(), latents.codes().clone()));
+            tensors.extend(net.decoder.tensors());
+            tensors.extend(adam_nerf.state());
+            tensors.extend(adam_dec.state());
+            let meta = CheckpointMeta {
+                step: done,
+                rng,
+                config: cfg.clone(),
+                loss_log: loss_log.clone(),
+                train_seconds: seconds_before + started.elapsed().as_secs_f64(),
+                decoder_steps: adam_dec.step_count(),
+            };
+            ckpt.save(done, &tensors, &meta)?;
+            last_ckpt = Instant::now();
+        }
+        if stop && done < cfg.steps {
+            if control.is_cancelled() {
+                return Err(EngineError::Cancelled);
+            }
+            return Ok(Outcome::Stopped { step: done });
+        }
+    }
+    let train_seconds = seconds_before + started.elapsed().as_secs_f64();
+
+    std::fs::create_dir_all(out).map_err(|e| EngineError::io(out, e))?;
+    module.save(&out.join("style_module.safetensors"))?;
+    latents.save(&out.join("latents.safetensors"))?;
+    let latents_file = LatentsFile {
+        styles: inputs.styles.iter().map(|s| s.name.clone()).collect(),
+        num_views: n_views,
+    };
+    write_json_atomic(&out.join("latents.json"), &latents_file)?;
+    net.decoder
+        .save(&out.join("decoder.safetensors"), net.encoder.source())?;
+    let tenth = (loss_log.len() / 10).max(1);
+    let mean = |r: &[MutualRecord]| r.iter().map(|r| r.mimic).sum::<f32>() / r.len().max(1) as f32;
+    let decoder_end = flat_weights(&net.decoder)?;
+    let report = MutualReport {
+        steps: cfg.steps,
+        resumed_from: start,
+        train_seconds,
+        mimic_start: mean(&loss_log[..tenth.min(loss_log.len())]),
+        mimic_end: mean(&loss_log[loss_log.len().saturating_sub(tenth)..]),
+        decoder_change: ((&decoder_end - &decoder_start)?.sqr()?.sum_all()?.sqrt()?
+            / decoder_start.sqr()?.sum_all()?.sqrt()?)?
+        .to_scalar()?,
+        latent_deviation: latents.mean_deviation()?,
+        loss_log,
+    };
+    write_json_atomic(&out.join("metrics.json"), &report)?;
+    Ok(Outcome::Done(report))
+}

@@ -1,0 +1,615 @@
+//! Stage 5, `render_stylized`: render a camera path with the stylized NeRF for each requested
+//! style or blend of styles, and evaluate it against the 2D baselines.
+//!
+//! A style is rendered with its mean latent μ_j; a blend `a:0.3,b:0.7` with Σ w_j μ_j (the 2D
+//! methods blend the AdaIN targets' statistics the same way). For every style spec the stage
+//! writes, under `<spec>/`: `frames/frame_NNNN.png`, `animation.gif` (and `animation.mp4` when
+//! `ffmpeg` is on PATH), `sheet.png` (rows of style | NeRF→AdaIN | stylized NeRF for a few
+//! views). With evaluation on (the default), it also renders the path with (a) the pretrained
+//! decoder frame by frame (the paper's NeRF→AdaIN baseline) and (b) the mutually fine-tuned
+//! decoder, and reports for (a), (b) and (c) the stylized NeRF the warped consistency errors
+//! and the style/content losses ([`crate::eval`]): `metrics.json` and `eval.md` (written last).
+//!
+//! The default path is `render_views`' interpolated path, whose depth is the field's; any
+//! other camera path is given as cameras and its depth comes from the frozen density.
+
+use std::path::{Path, PathBuf};
+
+use candle_core::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Camera;
+use crate::checkpoint::write_json_atomic;
+use crate::eval::{fidelity, warped_error, GapError, Sequence};
+use crate::field::saved;
+use crate::image_io;
+use crate::preset::Preset;
+use crate::stages::decoder_pretrain::crop_views;
+use crate::stages::mutual_learning::LatentsFile;
+use crate::stages::{Outcome, Progress, StageControl};
+use crate::style2d::adain::{adain, Stats};
+use crate::style2d::arch::VggArch;
+use crate::style2d::decoder::Decoder;
+use crate::style2d::encoder::VggEncoder;
+use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc, StyleImage};
+use crate::style2d::network::StyleTarget;
+use crate::style2d::weights::EncoderWeights;
+use crate::stylized::latents::LatentCodes;
+use crate::stylized::style_module::StyleModule;
+use crate::stylized::surface::SurfaceSamples;
+use crate::views::RenderedViews;
+use crate::warp::WarpConfig;
+use crate::{EngineError, Result};
+
+/// Configuration of the stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RenderStylizedConfig {
+    /// Style specs: a style name (`waves`) or a blend (`mosaic:0.3,waves:0.7`). Empty: every
+    /// style on its own.
+    pub styles: Vec<String>,
+    /// Evaluate consistency and fidelity against the 2D baselines.
+    pub eval: bool,
+    /// Frame gaps of the short- and long-range consistency.
+    pub short_gap: usize,
+    pub long_gap: usize,
+    /// Pixels rendered less opaque than this have no depth for warping.
+    pub min_opacity: f32,
+    /// Relative depth tolerance of the warp's occlusion test.
+    pub rel_tolerance: f32,
+    /// Rows of the contact sheet.
+    pub sheet_rows: usize,
+    /// Delay between animation frames.
+    pub frame_ms: u32,
+    /// Longer side the style images are resized to for their statistics.
+    pub style_size: u32,
+}
+
+impl RenderStylizedConfig {
+    pub fn preset(preset: Preset) -> Self {
+        let base = Self {
+            styles: Vec::new(),
+            eval: true,
+            short_gap: 1,
+            long_gap: 7,
+            min_opacity: 0.5,
+            rel_tolerance: WarpConfig::default().rel_tolerance,
+            sheet_rows: 3,
+            frame_ms: 80,
+            style_size: 256,
+        };
+        match preset {
+            Preset::Tiny => Self {
+                long_gap: 3,
+                sheet_rows: 2,
+                style_size: 32,
+                ..base
+            },
+            _ => base,
+        }
+    }
+}
+
+/// Consistency and fidelity of one method on one style spec.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MethodScores {
+    pub method: String,
+    pub short_range: GapError,
+    pub long_range: GapError,
+    pub style_loss: f64,
+    pub content_loss: f64,
+}
+
+/// Everything measured for one style spec.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SpecReport {
+    pub spec: String,
+    pub folder: String,
+    pub frames: usize,
+    /// Empty without evaluation.
+    pub methods: Vec<MethodScores>,
+}
+
+/// The stage's metrics.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RenderStylizedReport {
+    pub specs: Vec<SpecReport>,
+    pub seconds: f64,
+}
+
+/// What the stage reads.
+#[derive(Debug, Clone, Copy)]
+pub struct Inputs<'a> {
+    pub field_dir: &'a Path,
+    /// The `render_views` output (its path views are the default camera path).
+    pub views: &'a RenderedViews,
+    /// The `decoder_pretrain` output folder (the baseline decoder).
+    pub decoder_dir: &'a Path,
+    /// The `mutual_learning` output folder.
+    pub mutual_dir: &'a Path,
+    pub styles: &'a [StyleImage],
+    pub encoder: &'a EncoderWeights,
+    /// A camera path to render instead of the default one.
+    pub path: Option<&'a [Camera]>,
+}
+
+/// A parsed style spec: (style index, weight) pairs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Blend {
+    pub spec: String,
+    pub weights: Vec<(usize, f32)>,
+}
+
+impl Blend {
+    /// Parses `name` or `a:0.3,b:0.7` against the job's style names.
+    pub fn parse(spec: &str, names: &[String]) -> Result<Self> {
+        let bad = |reason: String| EngineError::config("style", format!("`{spec}`: {reason}"));
+        let mut weights = Vec::new();
+        for part in spec.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let (name, w) = match part.rsplit_once(':') {
+                Some((n, w)) => (
+                    n.trim(),
+                    w.trim()
+                        .parse::<f32>()
+                        .map_err(|_| bad(format!("weight `{w}` is not a number")))?,
+                ),
+                None => (part, 1.0),
+            };
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(bad(format!("weight of `{name}` must be ≥ 0")));
+            }
+            let j = names.iter().position(|n| n == name).ok_or_else(|| {
+                bad(format!(
+                    "no style named `{name}` (styles: {})",
+                    names.join(", ")
+                ))
+            })?;
+            weights.push((j, w));
+        }
+        if weights.iter().map(|(_, w)| w).sum::<f32>() <= 0.0 {
+            return Err(bad("needs a style with a positive weight".into()));
+        }
+        Ok(Self {
+            spec: spec.to_string(),
+            weights,
+        })
+    }
+
+    /// A folder name for the spec.
+    fn folder(&self, names: &[String]) -> String {
+        if self.weights.len() == 1 {
+            return names[self.weights[0].0].clone();
+        }
+        self.weights
+            .iter()
+            .map(|(j, w)| format!("{}-{w}", names[*j]))
+            .collect::<Vec<_>>()
+            .join("_")
+    }
+
+    /// The AdaIN target of the blend: weighted mean of the styles' statistics.
+    fn style_target(&self, targets: &[StyleTarget]) -> Result<StyleTarget> {
+        let total: f32 = self.weights.iter().map(|(_, w)| w).sum();
+        let mix = |f: &dyn Fn(&Stats) -> &Tensor, k: usize| -> Result<Tensor> {
+            let mut acc: Option<Tensor> = None;
+            for (j, w) in &self.weights {
+                let t = (f(&targets[*j].stats[k]) * f64::from(w / total))?;
+                acc = Some(match acc {
+                    None => t,
+                    Some(a) => (a + t)?,
+                });
+            }
+            Ok(acc.expect("non-empty blend"))
+        };
+        let stats: Vec<Stats> = (0..4)
+            .map(|k| {
+                Ok(Stats {
+                    mean: mix(&|s| &s.mean, k)?,
+                    std: mix(&|s| &s.std, k)?,
+                })
+            })
+            .collect::<Result<_>>()?;
+        Ok(StyleTarget {
+            stats: stats.try_into().expect("four stats"),
+        })
+    }
+}
+
+/// The path to render: cameras, photoreal frames `[3, H, W]` and depths.
+struct PathFrames {
+    cameras: Vec<Camera>,
+    photoreal: Vec<Tensor>,
+    depths: Vec<Vec<f32>>,
+    surfaces: Vec<SurfaceSamples>,
+    width: usize,
+    height: usize,
+}
+
+fn path_frames(
+    inputs: &Inputs,
+    cfg: &RenderStylizedConfig,
+    control: &StageControl,
+    device: &Device,
+) -> Result<PathFrames> {
+    let (field, meta) = saved::load(inputs.field_dir, device)?;
+    let views = crop_views(inputs.views)?;
+    let (width, height) = (views.width as usize, views.height as usize);
+    let (cameras, given): (Vec<Camera>, bool) = match inputs.path {
+        Some(p) => (p.to_vec(), true),
+        None => (
+            views
+                .path_indices()
+                .iter()
+                .map(|&i| views.views[i].camera)
+                .collect(),
+            false,
+        ),
+    };
+    if cameras.is_empty() {
+        return Err(EngineError::config("path", "the camera path is empty"));
+    }
+    let s = VggArch::STRIDE as u32;
+    let mut out = PathFrames {
+        cameras: Vec::new(),
+        photoreal: Vec::new(),
+        depths: Vec::new(),
+        surfaces: Vec::new(),
+        width,
+        height,
+    };
+    let path_views = views.path_indices();
+    for (k, mut cam) in cameras.into_iter().enumerate() {
+        if control.is_cancelled() {
+            return Err(EngineError::Cancelled);
+        }
+        if given {
+            // Crop (top-left) to the stride, as the rendered views are.
+            cam.intrinsics.width = cam.intrinsics.width / s * s;
+            cam.intrinsics.height = cam.intrinsics.height / s * s;
+            if (
+                cam.intrinsics.width as usize,
+                cam.intrinsics.height as usize,
+            ) != (width, height)
+            {
+                return Err(EngineError::config(
+                    "path",
+                    format!(
+                        "camera {k} renders {}×{}, the views are {width}×{height}",
+                        cam.intrinsics.width, cam.intrinsics.height
+                    ),
+                ));
+            }
+        }
+        let surface = SurfaceSamples::for_camera(&field, &meta, &cam)?;
+        let (rgb, depth) = if given {
+            let img = crate::render::render_image(
+                &field,
+                &meta.camera_rays(&cam),
+                &meta.sampling,
+                meta.background,
+                &|s| field.colour(s),
+                8192,
+            )?;
+            (img.rgb, surface.surface_depth(cfg.min_opacity))
+        } else {
+            let i = path_views[k];
+            let depth = views
+                .depth(i)
+                .iter()
+                .zip(views.opacity(i))
+                .map(|(&d, &o)| if o >= cfg.min_opacity { d } else { 0.0 })
+                .collect();
+            (views.rgb(i).to_vec(), depth)
+        };
+        out.photoreal
+            .push(hwc_to_tensor(&rgb, width, height, device)?.squeeze(0)?);
+        out.depths.push(depth);
+        out.surfaces.push(surface);
+        out.cameras.push(cam);
+        control.report(&Progress {
+            stage: "render_stylized".into(),
+            step: 0,
+            total: 0,
+            metrics: [("frames_prepared".to_string(), (k + 1) as f64)].into(),
+            ..Default::default()
+        });
+    }
+    Ok(out)
+}
+
+/// Renders the path; writes the outputs into `out`.
+pub fn run(
+    inputs: Inputs,
+    cfg: &RenderStylizedConfig,
+    out: &Path,
+    control: &StageControl,
+    device: &Device,
+) -> Result<Outcome<RenderStylizedReport>> {
+    let started = std::time::Instant::now();
+    let latents_json = inputs.mutual_dir.join("latents.json");
+    let names: LatentsFile = serde_json::from_slice(
+        &std::fs::read(&latents_json).map_err(|e| EngineError::io(&latents_json, e))?,
+    )
+    .map_err(|e| EngineError::artifact(&latents_json, format!("cannot parse: {e}")))?;
+    let names = names.styles;
+    if names.len() != inputs.styles.len() {
+        return Err(EngineError::artifact(
+            &latents_json,
+            format!(
+                "{} styles recorded, {} given",
+                names.len(),
+                inputs.styles.len()
+            ),
+        ));
+    }
+    let specs: Vec<Blend> = if cfg.styles.is_empty() {
+        names
+            .iter()
+            .map(|n| Blend::parse(n, &names))
+            .collect::<Result<_>>()?
+    } else {
+        cfg.styles
+            .iter()
+            .map(|s| Blend::parse(s, &names))
+            .collect::<Result<_>>()?
+    };
+    let module = StyleModule::load(&inputs.mutual_dir.join("style_module.safetensors"), device)?;
+    let latents = LatentCodes::load(&inputs.mutual_dir.join("latents.safetensors"), device)?;
+    let encoder = VggEncoder::new(inputs.encoder, device)?;
+    let finetuned = Decoder::load(&inputs.mutual_dir.join("decoder.safetensors"), device)?.0;
+    let baseline = Decoder::load(&inputs.decoder_dir.join("decoder.safetensors"), device)?.0;
+    let style_tensors = inputs
+        .styles
+        .iter()
+        .map(|s| crate::style2d::images::to_tensor(&s.image, cfg.style_size, device))
+        .collect::<Result<Vec<_>>>()?;
+    let targets = style_tensors
+        .iter()
+        .map(|t| {
+            Ok(StyleTarget {
+                stats: crate::style2d::losses::feature_stats(&encoder.features(t)?)?,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let path = path_frames(&inputs, cfg, control, device)?;
+    let features = path
+        .photoreal
+        .iter()
+        .map(|f| Ok(encoder.relu4_1(&f.unsqueeze(0)?)?))
+        .collect::<Result<Vec<_>>>()?;
+    let warp_cfg = WarpConfig {
+        rel_tolerance: cfg.rel_tolerance,
+    };
+    let total = (specs.len() * path.cameras.len()) as u64;
+    let mut reports = Vec::new();
+    for (si, blend) in specs.iter().enumerate() {
+        let folder = blend.folder(&names);
+        let dir = out.join(&folder);
+        let latent = latents.blend(&blend.weights)?;
+        let target = blend.style_target(&targets)?;
+        let mut stylized = Vec::with_capacity(path.cameras.len());
+        for (k, surface) in path.surfaces.iter().enumerate() {
+            if control.is_cancelled() {
+                return Err(EngineError::Cancelled);
+            }
+            let rgb = module.render(&surface.all(device)?, &latent)?;
+            let frame = rgb
+                .t()?
+                .reshape((3, path.height, path.width))?
+                .clamp(0f32, 1f32)?;
+            save_frame(
+                &dir.join("frames").join(format!("frame_{k:04}.png")),
+                &frame,
+            )?;
+            stylized.push(frame);
+            control.report(&Progress {
+                stage: "render_stylized".into(),
+                step: (si * path.cameras.len() + k + 1) as u64,
+                total,
+                ..Default::default()
+            });
+        }
+        write_animation(&dir, &stylized, cfg.frame_ms)?;
+        let decode = |decoder: &Decoder| -> Result<Vec<Tensor>> {
+            features
+                .iter()
+                .map(|f| {
+                    Ok(decoder
+                        .forward(&adain(f, &target.stats[3], 1.0)?)?
+                        .squeeze(0)?
+                        .clamp(0f32, 1f32)?)
+                })
+                .collect()
+        };
+        let adain_frames = decode(&baseline)?;
+        let main_style = blend
+            .weights
+            .iter()
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .expect("non-empty blend")
+            .0;
+        contact_sheet(
+            &dir.join("sheet.png"),
+            &style_tensors[main_style],
+            &adain_frames,
+            &stylized,
+            cfg.sheet_rows,
+        )?;
+        let mut methods = Vec::new();
+        if cfg.eval {
+            let finetuned_frames = decode(&finetuned)?;
+            for (method, frames) in [
+                ("NeRF -> AdaIN", &adain_frames),
+                ("NeRF -> fine-tuned decoder", &finetuned_frames),
+                ("stylized NeRF", &stylized),
+            ] {
+                let seq = Sequence {
+                    frames,
+                    cameras: &path.cameras,
+                    depths: &path.depths,
+                };
+                let (style_loss, content_loss) =
+                    fidelity(&encoder, frames, &path.photoreal, &target)?;
+                methods.push(MethodScores {
+                    method: method.into(),
+                    short_range: warped_error(&seq, cfg.short_gap, warp_cfg, device)?,
+                    long_range: warped_error(&seq, cfg.long_gap, warp_cfg, device)?,
+                    style_loss,
+                    content_loss,
+                });
+            }
+        }
+        reports.push(SpecReport {
+            spec: blend.spec.clone(),
+            folder,
+            frames: stylized.len(),
+            methods,
+        });
+    }
+    let report = RenderStylizedReport {
+        specs: reports,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    if cfg.eval {
+        crate::checkpoint::write_atomic(
+            &out.join("eval.md"),
+            markdown_table(&report, cfg).as_bytes(),
+        )?;
+    }
+    write_json_atomic(&out.join("metrics.json"), &report)?;
+    Ok(Outcome::Done(report))
+}
+
+/// The evaluation as a Markdown table in the paper's layout: one row per method and style,
+/// short- and long-range consistency (RMSE, MAE), style and content loss.
+pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig) -> String {
+    let mut s = format!(
+        "| style | method | short-range RMSE (gap {}) | short MAE | long-range RMSE (gap {}) | long MAE | style loss | content loss |\n|---|---|---|---|---|---|---|---|\n",
+        cfg.short_gap, cfg.long_gap
+    );
+    for spec in &report.specs {
+        for m in &spec.methods {
+            s += &format!(
+                "| {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} |\n",
+                spec.spec,
+                m.method,
+                m.short_range.rmse,
+                m.short_range.mae,
+                m.long_range.rmse,
+                m.long_range.mae,
+                m.style_loss,
+                m.content_loss
+            );
+        }
+    }
+    s
+}
+
+fn save_frame(path: &Path, frame: &Tensor) -> Result<()> {
+    let (w, h, rgb) = tensor_to_hwc(&frame.unsqueeze(0)?)?;
+    image_io::save_rgb_png(path, w, h, &rgb)
+}
+
+/// `animation.gif`, plus `animation.mp4` when `ffmpeg` is available.
+fn write_animation(dir: &Path, frames: &[Tensor], frame_ms: u32) -> Result<()> {
+    let path = dir.join("animation.gif");
+    let tmp = dir.join(".animation.gif.tmp");
+    {
+        let file = std::fs::File::create(&tmp).map_err(|e| EngineError::io(&tmp, e))?;
+        let mut enc = image::codecs::gif::GifEncoder::new_with_speed(file, 10);
+        enc.set_repeat(image::codecs::gif::Repeat::Infinite)
+            .map_err(|e| EngineError::artifact(&path, e.to_string()))?;
+        for f in frames {
+            let (w, h, rgb) = tensor_to_hwc(&f.unsqueeze(0)?)?;
+            let rgba = image::DynamicImage::ImageRgb8(image_io::to_rgb8(w, h, &rgb)).into_rgba8();
+            let frame = image::Frame::from_parts(
+                rgba,
+                0,
+                0,
+                image::Delay::from_numer_denom_ms(frame_ms, 1),
+            );
+            enc.encode_frame(frame)
+                .map_err(|e| EngineError::artifact(&path, e.to_string()))?;
+        }
+    }
+    std::fs::rename(&tmp, &path).map_err(|e| EngineError::io(&path, e))?;
+    encode_mp4(dir, frame_ms);
+    Ok(())
+}
+
+/// Best effort: `ffmpeg` turns the PNG frames into an H.264 MP4; skipped when absent.
+fn encode_mp4(dir: &Path, frame_ms: u32) {
+    let fps = (1000.0 / frame_ms.max(1) as f64).to_string();
+    let mp4: PathBuf = dir.join("animation.mp4");
+    let status = std::process::Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-y", "-framerate", &fps, "-i"])
+        .arg(dir.join("frames").join("frame_%04d.png"))
+        .args([
+            "-pix_fmt",
+            "yuv420p",
+            "-vf",
+            "scale=trunc(iw/2)*2:trunc(ih/2)*2",
+        ])
+        .arg(&mp4)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status();
+    match status {
+        Ok(s) if s.success() => {}
+        Ok(s) => tracing::warn!(%s, "ffmpeg failed; the GIF is the animation"),
+        Err(_) => tracing::debug!("ffmpeg not found; writing the GIF only"),
+    }
+}
+
+/// Rows of style | NeRF→AdaIN | stylized NeRF, for `rows` views spread along the path.
+fn contact_sheet(
+    path: &Path,
+    style: &Tensor,
+    adain_frames: &[Tensor],
+    stylized: &[Tensor],
+    rows: usize,
+) -> Result<()> {
+    let (_, h, w) = stylized[0].dims3()?;
+    let rows = rows.clamp(1, stylized.len());
+    let style = style.interpolate2d(h, w)?.squeeze(0)?;
+    let mut img = image::RgbImage::new(3 * w as u32, (h * rows) as u32);
+    for r in 0..rows {
+        let k = r * stylized.len() / rows;
+        for (c, t) in [&style, &adain_frames[k], &stylized[k]]
+            .into_iter()
+            .enumerate()
+        {
+            let (tw, th, rgb) = tensor_to_hwc(&t.unsqueeze(0)?)?;
+            let tile = image_io::to_rgb8(tw, th, &rgb);
+            image::imageops::replace(&mut img, &tile, (c * w) as i64, (r * h) as i64);
+        }
+    }
+    image_io::save_png(path, &img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blends_parse_and_errors_name_the_problem() {
+        let names = vec!["mosaic".to_string(), "waves".to_string()];
+        let b = Blend::parse("mosaic:0.3, waves:0.7", &names).unwrap();
+        assert_eq!(b.weights, vec![(0, 0.3), (1, 0.7)]);
+        assert_eq!(b.folder(&names), "mosaic-0.3_waves-0.7");
+        assert_eq!(
+            Blend::parse("waves", &names).unwrap().weights,
+            vec![(1, 1.0)]
+        );
+        let e = Blend::parse("dots", &names).unwrap_err().to_string();
+        assert!(
+            e.contains("no style named `dots`") && e.contains("mosaic, waves"),
+            "{e}"
+        );
+        assert!(Blend::parse("waves:x", &names)
+            .unwrap_err()
+            .to_string()
+            .contains("not a number"));
+        assert!(Blend::parse("waves:0", &names).is_err());
+        assert!(Blend::parse("waves:-1", &names).is_err());
+    }
+}

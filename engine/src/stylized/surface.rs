@@ -1,0 +1,176 @@
+//! What the stylized NeRF needs of the frozen field, computed once per view: for every pixel's
+//! ray, the samples that contribute to its colour, with their compositing weights
+//! w_k = T_k (1 − exp(−σ_k δ_k)), geometry features and normalised positions.
+//!
+//! Density is frozen after pretraining, so these weights never change: the stylized colour of
+//! a ray is Σ_k w_k c_s(x_k, l) + (1 − Σ_k w_k) · background, linear in the style module's
+//! colours. Caching the few samples per ray that carry weight (typically 2–8 on a surface, out
+//! of the dozens a ray marches through) makes a mutual-learning step cost one small MLP pass
+//! instead of a field evaluation along whole rays.
+
+use candle_core::{DType, Device, Tensor};
+
+use crate::camera::Camera;
+use crate::field::radiance::RadianceField;
+use crate::field::saved::FieldMeta;
+use crate::render::march::{early_stop_mask, march};
+use crate::render::step_size;
+use crate::Result;
+
+/// Samples with a compositing weight below this are dropped (their colour is invisible).
+pub const MIN_WEIGHT: f32 = 1e-3;
+
+/// Rays evaluated per field pass when building the cache.
+const CHUNK: usize = 8192;
+
+/// The weighted samples of a set of rays, packed ray after ray.
+#[derive(Debug, Clone, Default)]
+pub struct SurfaceSamples {
+    /// `offsets[r]..offsets[r + 1]` are ray r's samples; `num_rays + 1` entries.
+    pub offsets: Vec<u32>,
+    /// Compositing weight per sample.
+    pub weights: Vec<f32>,
+    /// Geometry features, `geometry_dim` per sample.
+    pub geometry: Vec<f32>,
+    /// Positions normalised to the field's box, 3 per sample.
+    pub points01: Vec<f32>,
+    /// z-depth (world units) per sample.
+    pub depths: Vec<f32>,
+    pub geometry_dim: usize,
+}
+
+/// A batch of surface samples as tensors, ready for the style module.
+#[derive(Debug, Clone)]
+pub struct SurfaceBatch {
+    pub num_rays: usize,
+    /// `[N, G]`.
+    pub geometry: Tensor,
+    /// `[N, 3]`.
+    pub points01: Tensor,
+    /// `[N, 1]`.
+    pub weights: Tensor,
+    /// `[N]` u32: the ray (row of the output) of each sample.
+    pub ray: Tensor,
+    /// `[R, 1]`: 1 − Σ weights, the background's share of each ray.
+    pub transparency: Tensor,
+}
+
+impl SurfaceSamples {
+    pub fn num_rays(&self) -> usize {
+        self.offsets.len().saturating_sub(1)
+    }
+
+    pub fn num_samples(&self) -> usize {
+        self.weights.len()
+    }
+
+    /// The surface samples of every pixel of `camera`, row-major.
+    pub fn for_camera(field: &RadianceField, meta: &FieldMeta, camera: &Camera) -> Result<Self> {
+        let rays = meta.camera_rays(camera);
+        let step = step_size(field, &rays, &meta.sampling);
+        let g = field.config.geometry_features;
+        let mut out = SurfaceSamples {
+            offsets: vec![0],
+            geometry_dim: g,
+            ..Default::default()
+        };
+        let idx: Vec<usize> = (0..rays.len()).collect();
+        for part in idx.chunks(CHUNK) {
+            let batch = rays.select(part);
+            let marched = march(
+                &batch,
+                &field.occupancy,
+                step,
+                meta.sampling.max_samples_per_ray,
+                None,
+            );
+            let sigma = field.density_values(&marched.positions)?;
+            let keep = early_stop_mask(&marched, &sigma, meta.sampling.early_stop_eps);
+            let samples = marched.filter(&keep);
+            let sigma: Vec<f32> = sigma
+                .iter()
+                .zip(&keep)
+                .filter_map(|(s, k)| k.then_some(*s))
+                .collect();
+            let points01 = field.points01(&samples.positions)?;
+            let (_, geometry) = field.geometry(&points01)?;
+            let geometry: Vec<f32> = geometry.detach().flatten_all()?.to_vec1()?;
+            let points01: Vec<f32> = points01.flatten_all()?.to_vec1()?;
+            for w in samples.packed.offsets.windows(2) {
+                let mut transmittance = 1.0f32;
+                for k in w[0] as usize..w[1] as usize {
+                    let alpha = 1.0 - (-sigma[k] * samples.packed.deltas[k]).exp();
+                    let weight = transmittance * alpha;
+                    transmittance *= 1.0 - alpha;
+                    if weight >= MIN_WEIGHT {
+                        out.weights.push(weight);
+                        out.geometry
+                            .extend_from_slice(&geometry[k * g..(k + 1) * g]);
+                        out.points01.extend_from_slice(&points01[3 * k..3 * k + 3]);
+                    }
+                }
+                out.offsets.push(out.weights.len() as u32);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Expected surface z-depth of each ray (Σ w d / Σ w), 0 where the opacity is below
+    /// `min_opacity`.
+    pub fn surface_depth(&self, min_opacity: f32) -> Vec<f32> {
+        self.offsets
+            .windows(2)
+            .map(|w| {
+                let r = w[0] as usize..w[1] as usize;
+                let total: f32 = self.weights[r.clone()].iter().sum();
+                if total < min_opacity {
+                    return 0.0;
+                }
+                let wd: f32 = r.map(|k| self.weights[k] * self.depths[k]).sum();
+                wd / total
+            })
+            .collect()
+    }
+
+    /// The samples of the rays `rays` (in that order) as tensors on `device`.
+    pub fn batch(&self, rays: &[usize], device: &Device) -> Result<SurfaceBatch> {
+        let g = self.geometry_dim;
+        let (mut geometry, mut points01, mut weights, mut ray) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut transparency = Vec::with_capacity(rays.len());
+        for (row, &r) in rays.iter().enumerate() {
+            let (a, b) = (self.offsets[r] as usize, self.offsets[r + 1] as usize);
+            geometry.extend_from_slice(&self.geometry[a * g..b * g]);
+            points01.extend_from_slice(&self.points01[3 * a..3 * b]);
+            weights.extend_from_slice(&self.weights[a..b]);
+            ray.extend(std::iter::repeat_n(row as u32, b - a));
+            transparency.push(1.0 - self.weights[a..b].iter().sum::<f32>());
+        }
+        let n = weights.len();
+        Ok(SurfaceBatch {
+            num_rays: rays.len(),
+            geometry: Tensor::from_vec(geometry, (n, g), device)?,
+            points01: Tensor::from_vec(points01, (n, 3), device)?,
+            weights: Tensor::from_vec(weights, (n, 1), device)?,
+            ray: Tensor::from_vec(ray, n, device)?,
+            transparency: Tensor::from_vec(transparency, (rays.len(), 1), device)?,
+        })
+    }
+
+    /// All rays as one batch.
+    pub fn all(&self, device: &Device) -> Result<SurfaceBatch> {
+        let rays: Vec<usize> = (0..self.num_rays()).collect();
+        self.batch(&rays, device)
+    }
+}
+
+impl SurfaceBatch {
+    /// Composites per-sample colours `[N, 3]` with per-ray background colours `[R, 3]` (or
+    /// `[1, 3]`): Σ_k w_k c_k + (1 − Σ_k w_k) · background, `[R, 3]`.
+    pub fn composite(&self, colours: &Tensor, background: &Tensor) -> Result<Tensor> {
+        let weighted = colours.broadcast_mul(&self.weights)?;
+        let rgb = Tensor::zeros((self.num_rays, 3), DType::F32, colours.device())?
+            .index_add(&self.ray, &weighted, 0)?;
+        Ok((rgb + self.transparency.broadcast_mul(background)?)?)
+    }
+}

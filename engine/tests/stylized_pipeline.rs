@@ -1,0 +1,261 @@
+//! The stylized half end to end on a tiny generated scene: all five stages run; in mutual
+//! learning L_mimic falls and the decoder's weights change once it is unfrozen; an
+//! interrupted mutual-learning run resumes to exactly the uninterrupted result; the stylized
+//! render writes frames, animation, contact sheet and an evaluation of three methods, for single
+//! styles and a blend.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use candle_core::Device;
+use stylenerf_engine::preset::Preset;
+use stylenerf_engine::scene::generate::{generate, GenerateOptions};
+use stylenerf_engine::scene::{LoadOptions, Scene};
+use stylenerf_engine::stages::decoder_pretrain::{self, DecoderPretrainConfig};
+use stylenerf_engine::stages::mutual_learning::{self, MutualConfig, MutualReport};
+use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
+use stylenerf_engine::stages::render_stylized::{self, RenderStylizedConfig};
+use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
+use stylenerf_engine::stages::{Outcome, StageControl};
+use stylenerf_engine::style2d::images::StyleImage;
+use stylenerf_engine::style2d::painted;
+use stylenerf_engine::style2d::weights::EncoderWeights;
+use stylenerf_engine::views::RenderedViews;
+
+/// Outputs of the first three stages, shared by the tests.
+struct Upstream {
+    _tmp: tempfile::TempDir,
+    root: PathBuf,
+    views: RenderedViews,
+    styles: Vec<StyleImage>,
+    encoder: EncoderWeights,
+}
+
+fn done<T>(o: Outcome<T>) -> T {
+    match o {
+        Outcome::Done(r) => r,
+        Outcome::Stopped { step } => panic!("stopped at {step}"),
+    }
+}
+
+fn upstream() -> &'static Upstream {
+    static CELL: OnceLock<Upstream> = OnceLock::new();
+    CELL.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let root = tmp.path().to_path_buf();
+        let dev = Device::Cpu;
+        let ctl = StageControl::default();
+        generate(
+            &GenerateOptions {
+                size: 32,
+                views: 12,
+                seed: 5,
+                ..Default::default()
+            },
+            &root.join("scene"),
+        )
+        .unwrap();
+        let scene = Scene::load(&root.join("scene"), &LoadOptions::default()).unwrap();
+        let mut nerf = NerfConfig::preset(Preset::Tiny);
+        nerf.steps = 120;
+        done(nerf_pretrain::run(&scene, &nerf, &root.join("nerf"), &ctl, &dev).unwrap());
+        let views = done(
+            render_views::run(
+                &root.join("nerf"),
+                &RenderViewsConfig::preset(Preset::Tiny),
+                &root.join("views"),
+                &ctl,
+                &dev,
+            )
+            .unwrap(),
+        );
+        let styles: Vec<StyleImage> = ["mosaic", "waves"]
+            .iter()
+            .map(|n| StyleImage {
+                name: n.to_string(),
+                image: painted::paint(n, 48).unwrap(),
+            })
+            .collect();
+        let encoder = EncoderWeights::bundled().unwrap();
+        done(
+            decoder_pretrain::run(
+                decoder_pretrain::Inputs {
+                    views: &views,
+                    styles: &styles,
+                    encoder: &encoder,
+                    init_decoder: None,
+                },
+                &DecoderPretrainConfig::preset(Preset::Tiny),
+                &root.join("decoder"),
+                &ctl,
+                &dev,
+            )
+            .unwrap(),
+        );
+        Upstream {
+            _tmp: tmp,
+            root,
+            views,
+            styles,
+            encoder,
+        }
+    })
+}
+
+fn mutual_config() -> MutualConfig {
+    MutualConfig {
+        steps: 40,
+        ..MutualConfig::preset(Preset::Tiny)
+    }
+}
+
+fn mutual(out: &Path, cfg: &MutualConfig, ctl: &StageControl) -> Outcome<MutualReport> {
+    let u = upstream();
+    mutual_learning::run(
+        mutual_learning::Inputs {
+            field_dir: &u.root.join("nerf"),
+            views: &u.views,
+            decoder_dir: &u.root.join("decoder"),
+            styles: &u.styles,
+            encoder: &u.encoder,
+        },
+        cfg,
+        out,
+        ctl,
+        &Device::Cpu,
+    )
+    .unwrap()
+}
+
+#[test]
+fn mutual_learning_fits_the_decoder_and_resumes_exactly() {
+    let u = upstream();
+    let cfg = mutual_config();
+    let full = u.root.join("mutual-test-full");
+    let report = done(mutual(&full, &cfg, &StageControl::default()));
+    assert!(
+        report.mimic_end < 0.7 * report.mimic_start,
+        "L_mimic {} -> {}",
+        report.mimic_start,
+        report.mimic_end
+    );
+    // Frozen for the first 40% of the steps, learning afterwards.
+    let freeze = (cfg.steps as f64 * cfg.decoder_freeze).round() as usize;
+    assert!(report.loss_log[..freeze].iter().all(|r| r.style == 0.0));
+    assert!(report.loss_log[freeze..].iter().all(|r| r.style > 0.0));
+    assert!(
+        report.decoder_change > 1e-4,
+        "decoder change {}",
+        report.decoder_change
+    );
+    assert!(report.latent_deviation.is_finite());
+    for f in [
+        "style_module.safetensors",
+        "latents.safetensors",
+        "latents.json",
+        "decoder.safetensors",
+        "metrics.json",
+    ] {
+        assert!(full.join(f).exists(), "{f} missing");
+    }
+
+    // Interrupted after the decoder started learning, then resumed.
+    let split = u.root.join("mutual-test-split");
+    let mut stop = StageControl::default();
+    stop.stop_after_step = Some(30);
+    assert!(matches!(
+        mutual(&split, &cfg, &stop),
+        Outcome::Stopped { step: 30 }
+    ));
+    let resumed = done(mutual(&split, &cfg, &StageControl::default()));
+    assert_eq!(resumed.resumed_from, 30);
+    assert_eq!(resumed.loss_log, report.loss_log);
+    for f in [
+        "style_module.safetensors",
+        "latents.safetensors",
+        "decoder.safetensors",
+    ] {
+        assert_eq!(
+            std::fs::read(split.join(f)).unwrap(),
+            std::fs::read(full.join(f)).unwrap(),
+            "{f} differs after resuming"
+        );
+    }
+
+    // Without decoder fine-tuning the decoder does not move.
+    let frozen = done(mutual(
+        &u.root.join("mutual-test-frozen"),
+        &MutualConfig {
+            finetune_decoder: false,
+            steps: 8,
+            ..cfg
+        },
+        &StageControl::default(),
+    ));
+    assert_eq!(frozen.decoder_change, 0.0);
+}
+
+#[test]
+fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
+    let u = upstream();
+    let mutual_dir = u.root.join("mutual-render");
+    done(mutual(
+        &mutual_dir,
+        &MutualConfig {
+            steps: 10,
+            ..mutual_config()
+        },
+        &StageControl::default(),
+    ));
+    let out = u.root.join("stylized");
+    let cfg = RenderStylizedConfig {
+        styles: vec![
+            "mosaic".into(),
+            "waves".into(),
+            "mosaic:0.5,waves:0.5".into(),
+        ],
+        ..RenderStylizedConfig::preset(Preset::Tiny)
+    };
+    let report = done(
+        render_stylized::run(
+            render_stylized::Inputs {
+                field_dir: &u.root.join("nerf"),
+                views: &u.views,
+                decoder_dir: &u.root.join("decoder"),
+                mutual_dir: &mutual_dir,
+                styles: &u.styles,
+                encoder: &u.encoder,
+                path: None,
+            },
+            &cfg,
+            &out,
+            &StageControl::default(),
+            &Device::Cpu,
+        )
+        .unwrap(),
+    );
+    let frames = u.views.path_indices().len();
+    assert_eq!(report.specs.len(), 3);
+    for spec in &report.specs {
+        let dir = out.join(&spec.folder);
+        assert_eq!(spec.frames, frames);
+        for f in ["animation.gif", "sheet.png", "frames/frame_0000.png"] {
+            assert!(dir.join(f).exists(), "{}/{f} missing", spec.folder);
+        }
+        assert_eq!(spec.methods.len(), 3);
+        for m in &spec.methods {
+            assert!(m.short_range.pairs > 0, "{}: no valid pairs", m.method);
+            assert!(m.short_range.rmse.is_finite() && m.style_loss.is_finite());
+        }
+    }
+    assert!(out.join("eval.md").exists() && out.join("metrics.json").exists());
+    // The blend is neither of its styles.
+    let read = |s: &str| {
+        image::open(out.join(s).join("frames/frame_0001.png"))
+            .unwrap()
+            .to_rgb8()
+    };
+    let (a, b, mix) = (read("mosaic"), read("waves"), read("mosaic-0.5_waves-0.5"));
+    assert_ne!(mix.as_raw(), a.as_raw());
+    assert_ne!(mix.as_raw(), b.as_raw());
+}
