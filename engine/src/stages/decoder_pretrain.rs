@@ -2,8 +2,10 @@
 //! content, style and geometric consistency losses, L = L_c + λ_s L_s + λ_co L_co, then train
 //! the style VAE and record each style's latent distribution.
 //!
-//! Each step takes one style and a pair of neighbouring views (i, j), stylizes both as one
-//! batch and adds L_co = mean over the valid pixels of (O_i − M_ij · W_ij(O_j))², where W_ij
+//! Each step takes one style, a pair of neighbouring views (i, j) and a `patch`² window of
+//! view i with the window of view j that shows the same part of the scene
+//! ([`Window::follow`]); it stylizes both windows as one batch (AdaIN with the whole views'
+//! statistics) and adds L_co = mean over the valid pixels of (O_i − M_ij · W_ij(O_j))², where W_ij
 //! warps with view i's rendered depth and both cameras (see [`crate::warp`]); pixels whose
 //! rendered opacity is below `min_opacity` have no depth. Views are cropped to multiples of 8.
 //!
@@ -22,6 +24,7 @@ use crate::checkpoint::{write_json_atomic, CheckpointDir};
 use crate::optim::{Adam, AdamConfig};
 use crate::preset::Preset;
 use crate::rng::Rng;
+use crate::stages::window::Window;
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::style2d::arch::VggArch;
 use crate::style2d::decoder::Decoder;
@@ -40,6 +43,9 @@ use crate::{EngineError, Result};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DecoderPretrainConfig {
     pub steps: u64,
+    /// Side of the square windows trained per step (0: whole views). The window of the
+    /// second view is placed where the first window's scene projects.
+    pub patch: usize,
     pub lr: f64,
     /// λ_s.
     pub style_weight: f64,
@@ -71,6 +77,7 @@ impl DecoderPretrainConfig {
     pub fn preset(preset: Preset) -> Self {
         let base = Self {
             steps: 400,
+            patch: 64,
             lr: 5e-4,
             style_weight: 1.0,
             consistency_weight: 10.0,
@@ -90,6 +97,7 @@ impl DecoderPretrainConfig {
         match preset {
             Preset::Tiny => Self {
                 steps: 4,
+                patch: 16,
                 style_size: 32,
                 vae: VaeConfig {
                     hidden: 32,
@@ -223,13 +231,12 @@ fn nearest(views: &RenderedViews, k: usize) -> Vec<Vec<usize>> {
         .collect()
 }
 
-/// Per-view data the steps reuse: content tensors, relu4_1 features, warps.
+/// Per-view data the steps reuse: content tensors and relu4_1 features.
 struct ViewCache<'a> {
     views: &'a RenderedViews,
     cfg: &'a DecoderPretrainConfig,
     device: Device,
     content: HashMap<usize, (Tensor, Tensor)>,
-    warps: HashMap<(usize, usize), Warp>,
 }
 
 impl ViewCache<'_> {
@@ -259,41 +266,48 @@ impl ViewCache<'_> {
             .collect()
     }
 
-    fn warp(&mut self, i: usize, j: usize) -> Result<&Warp> {
-        if !self.warps.contains_key(&(i, j)) {
-            let w = Warp::new(
-                &self.views.views[i].camera,
-                &self.depth(i),
-                &self.views.views[j].camera,
-                &self.depth(j),
-                WarpConfig {
-                    rel_tolerance: self.cfg.warp.rel_tolerance,
-                },
-                &self.device,
-            )?;
-            self.warps.insert((i, j), w);
-        }
-        Ok(&self.warps[&(i, j)])
+    /// The warp from window `wj` of view j into window `wi` of view i.
+    fn warp(&self, (i, wi): (usize, Window), (j, wj): (usize, Window)) -> Result<Warp> {
+        let width = self.views.width as usize;
+        Warp::new(
+            &wi.camera(&self.views.views[i].camera),
+            &wi.crop_plane(&self.depth(i), width),
+            &wj.camera(&self.views.views[j].camera),
+            &wj.crop_plane(&self.depth(j), width),
+            WarpConfig {
+                rel_tolerance: self.cfg.warp.rel_tolerance,
+            },
+            &self.device,
+        )
     }
 }
 
-/// Losses of stylizing views i and j with one style, as one batch.
+/// Losses of stylizing window `wi` of view i and window `wj` (same size) of view j with one
+/// style, as one batch. AdaIN uses the statistics of the whole views.
 fn pair_losses(
     net: &AdaInNet,
     cache: &mut ViewCache,
     style: &StyleTarget,
-    i: usize,
-    j: usize,
+    (i, wi): (usize, Window),
+    (j, wj): (usize, Window),
 ) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
     let (_, fi) = cache.content(net, i)?;
     let (_, fj) = cache.content(net, j)?;
-    let target = crate::style2d::adain::adain(&Tensor::cat(&[&fi, &fj], 0)?, &style.stats[3], 1.0)?;
+    let t = crate::style2d::adain::adain(&Tensor::cat(&[&fi, &fj], 0)?, &style.stats[3], 1.0)?;
+    let stride = VggArch::STRIDE;
+    let target = Tensor::cat(
+        &[
+            wi.crop(&t.narrow(0, 0, 1)?, stride)?,
+            wj.crop(&t.narrow(0, 1, 1)?, stride)?,
+        ],
+        0,
+    )?;
     let out = net.decoder.forward(&target)?;
     let feats = net.encoder.features(&out)?;
     let content = crate::style2d::losses::content_loss(&feats[3], &target)?;
     let style_l = crate::style2d::losses::style_loss(&feats, &style.stats)?;
     let consistency = cache
-        .warp(i, j)?
+        .warp((i, wi), (j, wj))?
         .consistency_loss(&out.get(0)?, &out.get(1)?)?;
     Ok((content, style_l, consistency, out))
 }
@@ -368,8 +382,8 @@ pub fn run(
         cfg,
         device: device.clone(),
         content: HashMap::new(),
-        warps: HashMap::new(),
     };
+    let (width, height) = (views.width as usize, views.height as usize);
 
     let mut adam = Adam::new(net.decoder.vars(), AdamConfig::default())?;
     let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
@@ -392,7 +406,14 @@ pub fn run(
         let s = rng.below(styles.len());
         let i = rng.below(views.len());
         let j = pairs[i][rng.below(pairs[i].len())];
-        let (lc, ls, lco, _) = pair_losses(&net, &mut cache, &targets[s], i, j)?;
+        let wi = Window::random(width, height, cfg.patch, &mut rng);
+        let wj = wi.follow(
+            &views.views[i].camera,
+            &cache.depth(i),
+            width,
+            &views.views[j].camera,
+        );
+        let (lc, ls, lco, _) = pair_losses(&net, &mut cache, &targets[s], (i, wi), (j, wj))?;
         let total = ((&lc + (&ls * cfg.style_weight)?)? + (&lco * cfg.consistency_weight)?)?;
         adam.step(&total.backward()?, cfg.lr)?;
         let done = step + 1;
@@ -447,7 +468,8 @@ pub fn run(
     for (k, target) in targets.iter().enumerate() {
         let mut rows = Vec::new();
         for (i, nb) in pairs.iter().enumerate() {
-            let (_, ls, lco, o) = pair_losses(&net, &mut cache, target, i, nb[0])?;
+            let full = Window::full(width, height);
+            let (_, ls, lco, o) = pair_losses(&net, &mut cache, target, (i, full), (nb[0], full))?;
             co += lco.to_scalar::<f32>()? as f64;
             st += ls.to_scalar::<f32>()? as f64;
             n += 1.0;

@@ -19,3 +19,4 @@ pub mod mutual_learning;
 pub mod nerf_pretrain;
 pub mod render_stylized;
 pub mod render_views;
+pub mod window;

@@ -30,6 +30,7 @@ use crate::optim::{Adam, AdamConfig};
 use crate::preset::Preset;
 use crate::rng::Rng;
 use crate::stages::decoder_pretrain::{crop_views, StylesFile};
+use crate::stages::window::Window;
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::style2d::adain::adain;
 use crate::style2d::arch::VggArch;
@@ -244,37 +245,6 @@ impl TrainingViews {
 
     fn height(&self) -> usize {
         self.views.height as usize
-    }
-}
-
-/// A square window of a view, in pixels, aligned to the encoder's stride.
-#[derive(Debug, Clone, Copy)]
-struct Window {
-    x: usize,
-    y: usize,
-    size: usize,
-}
-
-impl Window {
-    fn random(width: usize, height: usize, size: usize, rng: &mut Rng) -> Self {
-        let s = VggArch::STRIDE;
-        let size = size.min(width).min(height) / s * s;
-        let x = rng.below((width - size) / s + 1) * s;
-        let y = rng.below((height - size) / s + 1) * s;
-        Self { x, y, size }
-    }
-
-    /// Row-major pixel indices of the window in a `width`-wide image.
-    fn pixels(&self, width: usize) -> Vec<usize> {
-        (self.y..self.y + self.size)
-            .flat_map(|r| (self.x..self.x + self.size).map(move |c| r * width + c))
-            .collect()
-    }
-
-    /// The window of a `[B, C, H, W]` map at `1/scale` resolution.
-    fn crop(&self, t: &Tensor, scale: usize) -> Result<Tensor> {
-        let (x, y, s) = (self.x / scale, self.y / scale, self.size / scale);
-        Ok(t.narrow(2, y, s)?.narrow(3, x, s)?)
     }
 }
 
