@@ -73,6 +73,7 @@ pub fn run(
     control: &StageControl,
     device: &Device,
 ) -> Result<Outcome<RenderedViews>> {
+    let started = std::time::Instant::now();
     let (field, meta) = saved::load(field_dir, device)?;
     let first = meta.train_cameras.first().ok_or_else(|| {
         EngineError::artifact(
@@ -143,6 +144,14 @@ pub fn run(
     }
     let (near, far) = depth_range(&rendered);
     rendered.save(out, near, far)?;
+    // Written last: its presence marks the stage complete.
+    crate::checkpoint::write_json_atomic(
+        &out.join("metrics.json"),
+        &serde_json::json!({
+            "views": rendered.len(),
+            "seconds": started.elapsed().as_secs_f64(),
+        }),
+    )?;
     Ok(Outcome::Done(rendered))
 }
 
