@@ -5,6 +5,7 @@
 mod auth;
 mod leases;
 mod lifecycle;
+mod progress;
 mod restart;
 mod support;
 mod uploads;
