@@ -8,4 +8,5 @@ mod lifecycle;
 mod progress;
 mod restart;
 mod support;
+mod tls;
 mod uploads;
