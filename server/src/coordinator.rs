@@ -129,6 +129,7 @@ impl Coordinator {
             metrics = ?metrics_addr,
             database = %config.database.display(),
             storage = %shared.storage.url(),
+            backend = %shared.storage.backend(),
             "coordinator listening"
         );
         Ok(CoordinatorHandle {
