@@ -409,13 +409,14 @@ async fn heartbeat_in(
     let expires = now + ttl;
     // The common case in one statement: the lease is held and current. Progress is always
     // kept on the row; `progress_event_at` moves (and an event is stored) at most once per
-    // interval.
-    let extended: Option<(String, String, i64, i64)> = sqlx::query_as(
+    // interval. Both assignments see the old row, so `progress_event_stored` is the decision.
+    let extended: Option<(String, String, i64, bool)> = sqlx::query_as(
         "UPDATE tasks SET lease_expires_at = ?1, progress = COALESCE(?2, progress), \
+         progress_event_stored = (?2 IS NOT NULL AND ?3 - progress_event_at >= ?4), \
          progress_event_at = CASE WHEN ?2 IS NOT NULL AND ?3 - progress_event_at >= ?4 \
            THEN ?3 ELSE progress_event_at END \
          WHERE id = ?5 AND fencing_token = ?6 AND worker_id = ?7 AND state = 'leased' \
-         AND lease_expires_at >= ?3 RETURNING job_id, stage, attempt, progress_event_at",
+         AND lease_expires_at >= ?3 RETURNING job_id, stage, attempt, progress_event_stored",
     )
     .bind(expires)
     .bind(progress.map(StoredProgress::to_json))
@@ -426,7 +427,7 @@ async fn heartbeat_in(
     .bind(&request.worker_id)
     .fetch_optional(&mut *conn)
     .await?;
-    let Some((job_id, stage, attempt, event_at)) = extended else {
+    let Some((job_id, stage, attempt, stored)) = extended else {
         // Not held: find out why (cancelled, expired, stale) for the reply.
         let held = check_lease(
             conn,
@@ -451,7 +452,7 @@ async fn heartbeat_in(
             progress: Some(progress),
             ..Default::default()
         };
-        if event_at == now {
+        if stored {
             batch.push(event);
         } else {
             batch.push_live(event);

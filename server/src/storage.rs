@@ -365,10 +365,14 @@ mod tests {
             let opened = Storage::open_with_env(url, fake_env());
             if cfg!(feature = "cloud") {
                 let storage = opened.unwrap_or_else(|e| panic!("{url}: {e}"));
-                assert!(storage.backend().starts_with(backend), "{url}: {}", storage.backend());
+                assert!(
+                    storage.backend().starts_with(backend),
+                    "{url}: {}",
+                    storage.backend()
+                );
                 assert_eq!(storage.url(), url);
             } else {
-                let error = opened.err().expect("needs the cloud feature").to_string();
+                let error = opened.expect_err("needs the cloud feature").to_string();
                 assert!(error.contains("`cloud` feature"), "{url}: {error}");
             }
         }
@@ -379,8 +383,12 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let local = Storage::open_with_env(dir.path().to_str().unwrap(), fake_env()).unwrap();
         assert!(local.url().starts_with("file://"), "{}", local.url());
-        assert!(local.backend().starts_with("LocalFileSystem"), "{}", local.backend());
-        let error = Storage::open_with_env("ftp://host/dir", fake_env()).err().unwrap();
+        assert!(
+            local.backend().starts_with("LocalFileSystem"),
+            "{}",
+            local.backend()
+        );
+        let error = Storage::open_with_env("ftp://host/dir", fake_env()).unwrap_err();
         assert!(error.to_string().contains("storage URL"), "{error}");
     }
 }

@@ -156,7 +156,11 @@ async fn run(
                 op.finish(Some(status(error)));
             }
             Err(error) => {
-                tracing::debug!(?error, size = ops.len(), "group rolled back; retrying alone");
+                tracing::debug!(
+                    ?error,
+                    size = ops.len(),
+                    "group rolled back; retrying alone"
+                );
                 for op in ops.drain(..) {
                     let mut single = vec![op];
                     let outcome = run_group(&pool, &mut single).await;

@@ -30,11 +30,14 @@ fn sequence(parts: &[&[u8]]) -> Vec<u8> {
 }
 
 fn pem(label: &str, der: &[u8]) -> String {
-    const ALPHABET: &[u8; 64] =
-        b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
     let mut text = String::new();
     for chunk in der.chunks(3) {
-        let b = [chunk[0], *chunk.get(1).unwrap_or(&0), *chunk.get(2).unwrap_or(&0)];
+        let b = [
+            chunk[0],
+            *chunk.get(1).unwrap_or(&0),
+            *chunk.get(2).unwrap_or(&0),
+        ];
         let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
         for i in 0..4 {
             text.push(if i <= chunk.len() {
@@ -63,10 +66,16 @@ fn self_signed_localhost() -> (String, String) {
     let rng = SystemRandom::new();
     let pkcs8 = EcdsaKeyPair::generate_pkcs8(&ALG, &rng).unwrap();
     let key = EcdsaKeyPair::from_pkcs8(&ALG, pkcs8.as_ref(), &rng).unwrap();
-    let ecdsa_sha256 = sequence(&[&der(0x06, &[0x2a, 0x86, 0x48, 0xce, 0x3d, 0x04, 0x03, 0x02])]);
+    let ecdsa_sha256 = sequence(&[&der(
+        0x06,
+        &[0x2a, 0x86, 0x48, 0xce, 0x3d, 0x04, 0x03, 0x02],
+    )]);
     let name = sequence(&[&der(
         0x31,
-        &sequence(&[&der(0x06, &[0x55, 0x04, 0x03]), &der(0x0c, b"stylenerf test")]),
+        &sequence(&[
+            &der(0x06, &[0x55, 0x04, 0x03]),
+            &der(0x0c, b"stylenerf test"),
+        ]),
     )]);
     let validity = sequence(&[&der(0x17, b"250101000000Z"), &der(0x18, b"20991231235959Z")]);
     let algorithm = sequence(&[
@@ -132,10 +141,8 @@ async fn serves_grpc_over_tls_to_clients_that_trust_its_certificate() {
         .unwrap()
         .into_inner();
     assert_eq!(health.status(), ServingStatus::Serving);
-    let mut jobs = pb::job_service_client::JobServiceClient::with_interceptor(
-        channel,
-        bearer(Some(ALICE)),
-    );
+    let mut jobs =
+        pb::job_service_client::JobServiceClient::with_interceptor(channel, bearer(Some(ALICE)));
     let listed = jobs
         .list_jobs(pb::ListJobsRequest::default())
         .await
@@ -151,7 +158,10 @@ async fn serves_grpc_over_tls_to_clients_that_trust_its_certificate() {
         .connect_timeout(Duration::from_secs(5))
         .connect()
         .await;
-    assert!(untrusted.is_err(), "a client that does not trust the certificate must not connect");
+    assert!(
+        untrusted.is_err(),
+        "a client that does not trust the certificate must not connect"
+    );
 
     // Plaintext HTTP/2 to the TLS port: no answer.
     let plain = Channel::from_shared(format!("http://{}", server.local_addr()))
