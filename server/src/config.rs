@@ -29,6 +29,10 @@ pub struct CoordinatorConfig {
     pub heartbeat_interval: Duration,
     /// Longest a `LeaseTask` long-poll waits.
     pub max_lease_wait: Duration,
+    /// A task's progress is stored as a `task_progress` event at most this often (the first
+    /// progress of each lease always is); heartbeats in between update the task row and reach
+    /// live `WatchJob` streams without a stored event. Zero stores every heartbeat's progress.
+    pub progress_event_interval: Duration,
     /// Leases per task before the job fails.
     pub max_attempts: u32,
     /// How often expired leases are requeued and gauges refreshed.
@@ -106,6 +110,7 @@ impl CoordinatorConfig {
             lease_ttl: Duration::from_secs(30),
             heartbeat_interval: Duration::from_secs(5),
             max_lease_wait: Duration::from_secs(20),
+            progress_event_interval: Duration::from_secs(30),
             max_attempts: 3,
             reaper_interval: Duration::from_secs(1),
             worker_timeout: Duration::from_secs(60),
@@ -162,6 +167,10 @@ pub struct CoordinatorArgs {
     /// Longest LeaseTask long-poll, in seconds [default: 20].
     #[arg(long, env = "STYLENERF_MAX_LEASE_WAIT")]
     pub max_lease_wait: Option<f64>,
+    /// Store a task's progress as an event at most every this many seconds; heartbeats in
+    /// between update the task and live watchers only; 0 stores every one [default: 30].
+    #[arg(long, env = "STYLENERF_PROGRESS_EVENT_INTERVAL")]
+    pub progress_event_interval: Option<f64>,
     /// Leases per task before its job fails [default: 3].
     #[arg(long, env = "STYLENERF_MAX_ATTEMPTS")]
     pub max_attempts: Option<u32>,
@@ -198,6 +207,7 @@ struct FileConfig {
     lease_ttl: Option<f64>,
     heartbeat_interval: Option<f64>,
     max_lease_wait: Option<f64>,
+    progress_event_interval: Option<f64>,
     max_attempts: Option<u32>,
     presets: Option<Vec<String>>,
     max_dataset_mib: Option<u64>,
@@ -294,6 +304,16 @@ impl CoordinatorArgs {
             "max_lease_wait",
             config.max_lease_wait,
         )?;
+        config.progress_event_interval = match self
+            .progress_event_interval
+            .or(file.progress_event_interval)
+        {
+            None => config.progress_event_interval,
+            Some(s) if s.is_finite() && s >= 0.0 => Duration::from_secs_f64(s),
+            Some(s) => anyhow::bail!(
+                "progress_event_interval must be zero or a positive number of seconds, not {s}"
+            ),
+        };
         if let Some(n) = self.max_attempts.or(file.max_attempts) {
             anyhow::ensure!(n >= 1, "max_attempts must be at least 1");
             config.max_attempts = n;

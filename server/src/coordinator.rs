@@ -11,6 +11,7 @@ use crate::db::Db;
 use crate::scheduler;
 use crate::state::Shared;
 use crate::storage::Storage;
+use crate::writer::Writer;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicI64;
 use std::sync::Arc;
@@ -49,8 +50,10 @@ impl Coordinator {
         let storage = Storage::open(&config.storage_url)?;
         let (stop, stop_rx) = watch::channel(false);
         let (events, _) = broadcast::channel(4096);
+        let writer = Writer::spawn(db.write.clone(), events.clone());
         let shared = Arc::new(Shared {
             db,
+            writer,
             storage,
             config: config.clone(),
             events,
@@ -126,6 +129,7 @@ impl Coordinator {
             metrics = ?metrics_addr,
             database = %config.database.display(),
             storage = %shared.storage.url(),
+            backend = %shared.storage.backend(),
             "coordinator listening"
         );
         Ok(CoordinatorHandle {

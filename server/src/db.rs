@@ -1,6 +1,7 @@
 //! SQLite access: opens the database in WAL mode with the migrations of `migrations/` applied,
 //! as one single-connection pool for writes (SQLite allows one writer; serialising writes in
-//! the process avoids busy retries) and a small pool of read-only connections.
+//! the process avoids busy retries; the group-commit `writer` and the rare other writes share
+//! it) and a small pool of read-only connections, so reads never wait for the writer.
 
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
 use sqlx::SqlitePool;

@@ -1,6 +1,7 @@
 //! The job event log: events are appended to the `events` table inside the transaction that
 //! causes them, then published to live `WatchJob` streams after the commit; replays read the
-//! table.
+//! table. Progress updates between two stored progress events of a task (see
+//! `progress_event_interval`) are published live only, with `seq` 0.
 
 use crate::model::{job_state_pb, stage_pb, task_state_pb, StoredProgress};
 use sqlx::SqliteConnection;
@@ -68,22 +69,15 @@ pub struct EventBatch {
 impl EventBatch {
     /// Adds an event to the transaction's batch.
     pub fn push(&mut self, event: NewEvent<'_>) {
-        self.pending.push(EventRow {
-            seq: 0,
-            job_id: event.job_id.to_string(),
-            at: crate::model::now_ms(),
-            kind: event.kind.to_string(),
-            task_id: event.task_id,
-            stage: event.stage.to_string(),
-            job_state: event.job_state.to_string(),
-            task_state: event.task_state.to_string(),
-            attempt: event.attempt,
-            progress: event
-                .progress
-                .map(StoredProgress::to_json)
-                .unwrap_or_default(),
-            message: event.message.to_string(),
-        });
+        self.pending.push(EventRow::from_new(event));
+    }
+
+    /// Adds an event that is published to live watchers after the commit but not stored (a
+    /// throttled progress update); it carries `seq` 0.
+    pub fn push_live(&mut self, event: NewEvent<'_>) {
+        let mut row = EventRow::from_new(event);
+        row.seq = 0;
+        self.events.push(to_pb(row));
     }
 
     /// Appends the pending events to the log (inside the caller's transaction).
@@ -140,6 +134,36 @@ pub struct EventRow {
     pub attempt: i64,
     pub progress: String,
     pub message: String,
+}
+
+impl EventRow {
+    /// The row of a new event (its `seq` is assigned by the INSERT).
+    fn from_new(event: NewEvent<'_>) -> EventRow {
+        EventRow {
+            seq: 0,
+            job_id: event.job_id.to_string(),
+            at: crate::model::now_ms(),
+            kind: event.kind.to_string(),
+            task_id: event.task_id,
+            stage: event.stage.to_string(),
+            job_state: event.job_state.to_string(),
+            task_state: event.task_state.to_string(),
+            attempt: event.attempt,
+            progress: event
+                .progress
+                .map(StoredProgress::to_json)
+                .unwrap_or_default(),
+            message: event.message.to_string(),
+        }
+    }
+}
+
+/// Sends committed (and live-only) events to the live `WatchJob` streams.
+pub fn publish(sender: &tokio::sync::broadcast::Sender<pb::Event>, batch: EventBatch) {
+    for event in batch.events {
+        // No receiver is fine: nobody is watching.
+        let _ = sender.send(event);
+    }
 }
 
 pub fn to_pb(row: EventRow) -> pb::Event {

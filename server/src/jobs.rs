@@ -10,6 +10,7 @@ use crate::model::{
 use crate::state::Shared;
 use sqlx::{SqliteConnection, SqlitePool};
 use std::collections::HashMap;
+use std::sync::LazyLock;
 use stylenerf_proto::v1 as pb;
 use tonic::Status;
 
@@ -36,7 +37,7 @@ pub struct JobRow {
 }
 
 /// A row of the `tasks` table.
-#[derive(Debug, Clone, sqlx::FromRow)]
+#[derive(Debug, Clone, sqlx::FromRow, serde::Deserialize)]
 pub struct TaskRow {
     pub id: i64,
     pub job_id: String,
@@ -230,41 +231,62 @@ pub async fn visible_job(
     }
 }
 
-/// A task row with its dependencies as a comma-separated list and its output manifest as a
-/// JSON array of `[key, size, sha256]`.
-#[derive(sqlx::FromRow)]
-struct TaskWithDeps {
-    #[sqlx(flatten)]
+/// A JSON array of the tasks of the job `job` (an SQL expression), in id order, each a
+/// `TaskRow` object with `deps` (comma-separated ids it depends on) and `outputs` (its manifest
+/// as `[key, size, sha256]` arrays): a job's tasks come back in one row.
+fn tasks_json(job: &str) -> String {
+    format!(
+        "(SELECT json_group_array(json_object('id', t.id, 'job_id', t.job_id, \
+         'stage', t.stage, 'state', t.state, 'core', json(CASE WHEN t.core THEN 'true' \
+         ELSE 'false' END), 'config', t.config, 'memory_bytes', t.memory_bytes, \
+         'output_prefix', t.output_prefix, 'attempt', t.attempt, 'max_attempts', \
+         t.max_attempts, 'fencing_token', t.fencing_token, 'worker_id', t.worker_id, \
+         'lease_expires_at', t.lease_expires_at, 'leased_at', t.leased_at, \
+         'progress', t.progress, 'error', t.error, 'created_at', t.created_at, \
+         'started_at', t.started_at, 'finished_at', t.finished_at, \
+         'deps', COALESCE((SELECT group_concat(depends_on) FROM task_deps \
+           WHERE task_id = t.id), ''), \
+         'outputs', json((SELECT json_group_array(json_array(key, size, sha256)) FROM \
+           (SELECT key, size, sha256 FROM artifacts WHERE task_id = t.id ORDER BY key))))) \
+         FROM (SELECT * FROM tasks WHERE job_id = {job} ORDER BY id) t)"
+    )
+}
+
+/// One element of `tasks_json`.
+#[derive(serde::Deserialize)]
+struct TaskJson {
+    #[serde(flatten)]
     task: TaskRow,
     deps: String,
-    outputs: String,
+    outputs: Vec<(String, u64, String)>,
+}
+
+/// Protocol tasks from a `tasks_json` array.
+fn parse_tasks(json: &str) -> Result<Vec<pb::Task>, Status> {
+    let tasks: Vec<TaskJson> = serde_json::from_str(json).map_err(internal)?;
+    Ok(tasks
+        .into_iter()
+        .map(|t| {
+            let outputs = t
+                .outputs
+                .into_iter()
+                .map(|(key, size, sha256)| pb::Artifact { key, size, sha256 })
+                .collect();
+            let depends_on = t.deps.split(',').filter_map(|d| d.parse().ok()).collect();
+            task_to_pb(t.task, outputs, depends_on)
+        })
+        .collect())
 }
 
 /// The tasks of a job as protocol messages, with dependencies and output manifests.
 pub async fn load_tasks(pool: &SqlitePool, job_id: &str) -> Result<Vec<pb::Task>, Status> {
-    let rows: Vec<TaskWithDeps> = sqlx::query_as(
-        "SELECT t.*, COALESCE((SELECT group_concat(depends_on) FROM task_deps \
-         WHERE task_id = t.id), '') AS deps, \
-         (SELECT json_group_array(json_array(key, size, sha256)) FROM \
-          (SELECT key, size, sha256 FROM artifacts WHERE task_id = t.id ORDER BY key)) AS outputs \
-         FROM tasks t WHERE t.job_id = ? ORDER BY t.id",
-    )
-    .bind(job_id)
-    .fetch_all(pool)
-    .await
-    .map_err(internal)?;
-    Ok(rows
-        .into_iter()
-        .map(|row| {
-            let outputs = serde_json::from_str::<Vec<(String, u64, String)>>(&row.outputs)
-                .unwrap_or_default()
-                .into_iter()
-                .map(|(key, size, sha256)| pb::Artifact { key, size, sha256 })
-                .collect();
-            let depends_on = row.deps.split(',').filter_map(|d| d.parse().ok()).collect();
-            task_to_pb(row.task, outputs, depends_on)
-        })
-        .collect())
+    static QUERY: LazyLock<String> = LazyLock::new(|| format!("SELECT {}", tasks_json("?")));
+    let json: String = sqlx::query_scalar(QUERY.as_str())
+        .bind(job_id)
+        .fetch_one(pool)
+        .await
+        .map_err(internal)?;
+    parse_tasks(&json)
 }
 
 /// Recorded output manifests of a job's tasks, by task id.
@@ -336,11 +358,31 @@ pub fn job_to_pb(row: JobRow, tasks: Vec<pb::Task>) -> pb::Job {
     }
 }
 
-/// A job with its tasks, if the caller may see it.
+/// A job with its tasks, if the caller may see it (one query: `GetJob` is the hot read).
 pub async fn get_job(shared: &Shared, caller: &Principal, job_id: &str) -> Result<pb::Job, Status> {
-    let row = visible_job(&shared.db.read, caller, job_id).await?;
-    let tasks = load_tasks(&shared.db.read, job_id).await?;
-    Ok(job_to_pb(row, tasks))
+    #[derive(sqlx::FromRow)]
+    struct JobWithTasks {
+        #[sqlx(flatten)]
+        job: JobRow,
+        tasks: String,
+    }
+    static QUERY: LazyLock<String> = LazyLock::new(|| {
+        format!(
+            "SELECT j.*, {} AS tasks FROM jobs j WHERE j.id = ?",
+            tasks_json("j.id")
+        )
+    });
+    let row: Option<JobWithTasks> = sqlx::query_as(QUERY.as_str())
+        .bind(job_id)
+        .fetch_optional(&shared.db.read)
+        .await
+        .map_err(internal)?;
+    match row {
+        Some(row) if caller.can_see(&row.job.owner) => {
+            Ok(job_to_pb(row.job, parse_tasks(&row.tasks)?))
+        }
+        _ => Err(job_not_found(job_id)),
+    }
 }
 
 /// Lists jobs newest first. `owner` is `None` for an admin listing everyone's jobs.

@@ -21,6 +21,7 @@ mod scheduler;
 mod state;
 pub mod storage;
 pub mod validation;
+mod writer;
 
 pub use auth::{AuthConfig, Role, TokenEntry};
 pub use config::{CoordinatorArgs, CoordinatorConfig, Limits, TlsConfig};

@@ -20,6 +20,11 @@ pub fn handle() -> Option<PrometheusHandle> {
                     ],
                 )
                 .ok()?
+                .set_buckets_for_metric(
+                    Matcher::Full("stylenerf_write_group_size".into()),
+                    &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0],
+                )
+                .ok()?
                 .build_recorder();
             let handle = recorder.handle();
             metrics::set_global_recorder(recorder).ok()?;
@@ -42,6 +47,10 @@ fn describe() {
     metrics::describe_counter!(
         "stylenerf_tasks_finished_total",
         "Task attempts that ended, per stage and outcome"
+    );
+    metrics::describe_histogram!(
+        "stylenerf_write_group_size",
+        "Write RPCs committed together in one transaction by the group-commit writer"
     );
     metrics::describe_histogram!(
         "stylenerf_task_duration_seconds",

@@ -1,13 +1,15 @@
 //! Task scheduling: worker registration, leasing (oldest ready task first, matched against the
 //! worker's device, labels and free memory), heartbeats that extend leases, completion and
 //! failure under fencing tokens, promotion of dependent tasks, and requeueing of expired leases.
-//! Every state change happens in one write transaction.
+//! Every state change happens in one write transaction, group-committed by `writer`.
 
 use crate::errors::{internal, invalid};
-use crate::events::{commit, EventBatch, NewEvent, JOB_STATE, TASK_PROGRESS};
+use crate::events::{EventBatch, NewEvent, JOB_STATE, TASK_PROGRESS};
 use crate::jobs::{cancel_open_tasks, set_job_state, TaskRow};
 use crate::model::{job_state, now_ms, task_state, Stage, StoredProgress};
 use crate::state::Shared;
+use crate::writer::{OpError, OpResult};
+use futures::FutureExt;
 use sqlx::SqliteConnection;
 use std::collections::HashSet;
 use std::sync::atomic::Ordering;
@@ -80,88 +82,28 @@ struct WorkerRow {
 /// reaper does it every `reaper_interval` in any case.
 const LEASE_TIME_EXPIRY_CHECK_MS: i64 = 100;
 
-/// Tries once to lease a task to a worker. The write transaction only claims the task; the
-/// assignment's inputs are read afterwards from the read pool.
+/// Tries once to lease a task to a worker. The group-committed write only claims the task;
+/// the assignment's inputs are read afterwards from the read pool.
 pub async fn try_lease(
     shared: &Shared,
     worker_id: &str,
     free_memory: u64,
 ) -> Result<Option<pb::TaskAssignment>, Status> {
     let now = now_ms();
-    let mut batch = EventBatch::default();
-    let mut tx = shared.db.write.begin().await.map_err(internal)?;
     let check_expiry = shared
         .next_expiry_check
         .fetch_max(now + LEASE_TIME_EXPIRY_CHECK_MS, Ordering::Relaxed)
         <= now;
-    let requeued = check_expiry
-        && expire_leases(&mut tx, &mut batch, now)
-            .await
-            .map_err(internal)?;
-    let worker: Option<WorkerRow> = sqlx::query_as(
-        "UPDATE workers SET last_seen_at = ? WHERE id = ? \
-         RETURNING device, memory_bytes, labels, max_tasks, \
-         (SELECT COUNT(*) FROM tasks WHERE worker_id = workers.id AND state = 'leased') AS running, \
-         (SELECT COALESCE(SUM(memory_bytes), 0) FROM tasks \
-          WHERE worker_id = workers.id AND state = 'leased') AS reserved",
-    )
-    .bind(now)
-    .bind(worker_id)
-    .fetch_optional(&mut *tx)
-    .await
-    .map_err(internal)?;
-    let Some(worker) = worker else {
-        return Err(Status::not_found(format!(
-            "worker {worker_id:?} is not registered (call RegisterWorker)"
-        )));
-    };
-    let mut leased = None;
-    if worker.running < worker.max_tasks.max(1) {
-        let free = if free_memory > 0 {
-            free_memory.min(i64::MAX as u64) as i64
-        } else if worker.memory_bytes > 0 {
-            worker.memory_bytes - worker.reserved
-        } else {
-            i64::MAX
-        };
-        let cuda = worker.device.starts_with("cuda");
-        let labels: HashSet<String> = serde_json::from_str(&worker.labels).unwrap_or_default();
-        // Look at the head of the queue first; only a worker that matches none of it (labels)
-        // searches deeper.
-        let mut chosen = None;
-        for window in [8i64, 1024] {
-            let candidates: Vec<(i64, String)> = sqlx::query_as(
-                "SELECT t.id, j.labels FROM tasks t JOIN jobs j ON j.id = t.job_id \
-                 WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
-                 ORDER BY t.ready_at, t.id LIMIT ?",
-            )
-            .bind(free)
-            .bind(cuda)
-            .bind(window)
-            .fetch_all(&mut *tx)
-            .await
-            .map_err(internal)?;
-            let seen = candidates.len() as i64;
-            chosen = candidates.into_iter().find(|(_, job_labels)| {
-                serde_json::from_str::<Vec<String>>(job_labels)
-                    .unwrap_or_default()
-                    .iter()
-                    .all(|l| labels.contains(l))
-            });
-            if chosen.is_some() || seen < window {
-                break;
-            }
-        }
-        if let Some((task_id, _)) = chosen {
-            leased = Some(
-                claim(shared, &mut tx, &mut batch, task_id, worker_id, now)
-                    .await
-                    .map_err(internal)?,
-            );
-        }
-    }
-    commit(tx, &mut batch).await.map_err(internal)?;
-    shared.publish(batch);
+    let ttl = shared.config.lease_ttl.as_millis() as i64;
+    let worker = worker_id.to_string();
+    let (leased, requeued) = shared
+        .writer
+        .write(move |conn, batch| {
+            let worker_id = worker.clone();
+            async move { lease_in(conn, batch, &worker_id, free_memory, ttl, check_expiry).await }
+                .boxed()
+        })
+        .await??;
     if requeued {
         shared.wake_workers();
     }
@@ -172,19 +114,90 @@ pub async fn try_lease(
     assignment(shared, task).await.map(Some).map_err(internal)
 }
 
+/// The lease transaction's work: requeues expired leases when asked to, then claims the oldest
+/// ready task the worker can run. Returns the claimed task and whether tasks were requeued.
+async fn lease_in(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    worker_id: &str,
+    free_memory: u64,
+    ttl: i64,
+    check_expiry: bool,
+) -> OpResult<Result<(Option<TaskRow>, bool), Status>> {
+    let now = now_ms();
+    let requeued = check_expiry && expire_leases(conn, batch, now).await?;
+    let worker: Option<WorkerRow> = sqlx::query_as(
+        "UPDATE workers SET last_seen_at = ? WHERE id = ? \
+         RETURNING device, memory_bytes, labels, max_tasks, \
+         (SELECT COUNT(*) FROM tasks WHERE worker_id = workers.id AND state = 'leased') AS running, \
+         (SELECT COALESCE(SUM(memory_bytes), 0) FROM tasks \
+          WHERE worker_id = workers.id AND state = 'leased') AS reserved",
+    )
+    .bind(now)
+    .bind(worker_id)
+    .fetch_optional(&mut *conn)
+    .await?;
+    let Some(worker) = worker else {
+        return Ok(Err(Status::not_found(format!(
+            "worker {worker_id:?} is not registered (call RegisterWorker)"
+        ))));
+    };
+    if worker.running >= worker.max_tasks.max(1) {
+        return Ok(Ok((None, requeued)));
+    }
+    let free = if free_memory > 0 {
+        free_memory.min(i64::MAX as u64) as i64
+    } else if worker.memory_bytes > 0 {
+        worker.memory_bytes - worker.reserved
+    } else {
+        i64::MAX
+    };
+    let cuda = worker.device.starts_with("cuda");
+    let labels: HashSet<String> = serde_json::from_str(&worker.labels).unwrap_or_default();
+    // Look at the head of the queue first; only a worker that matches none of it (labels)
+    // searches deeper.
+    for window in [8i64, 1024] {
+        let candidates: Vec<(i64, String)> = sqlx::query_as(
+            "SELECT t.id, j.labels FROM tasks t JOIN jobs j ON j.id = t.job_id \
+             WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
+             ORDER BY t.ready_at, t.id LIMIT ?",
+        )
+        .bind(free)
+        .bind(cuda)
+        .bind(window)
+        .fetch_all(&mut *conn)
+        .await?;
+        let seen = candidates.len() as i64;
+        let chosen = candidates.into_iter().find(|(_, job_labels)| {
+            serde_json::from_str::<Vec<String>>(job_labels)
+                .unwrap_or_default()
+                .iter()
+                .all(|l| labels.contains(l))
+        });
+        if let Some((task_id, _)) = chosen {
+            let task = claim(conn, batch, task_id, worker_id, now, ttl).await?;
+            return Ok(Ok((Some(task), requeued)));
+        }
+        if seen < window {
+            break;
+        }
+    }
+    Ok(Ok((None, requeued)))
+}
+
 /// Marks a ready task leased by `worker_id` under a new fencing token.
 async fn claim(
-    shared: &Shared,
     conn: &mut SqliteConnection,
     batch: &mut EventBatch,
     task_id: i64,
     worker_id: &str,
     now: i64,
+    ttl: i64,
 ) -> Result<TaskRow, sqlx::Error> {
-    let ttl = shared.config.lease_ttl.as_millis() as i64;
     let task: TaskRow = sqlx::query_as(
         "UPDATE tasks SET state = 'leased', attempt = attempt + 1, \
          fencing_token = fencing_token + 1, worker_id = ?, leased_at = ?, lease_expires_at = ?, \
+         progress_event_at = 0, \
          started_at = CASE WHEN started_at = 0 THEN ? ELSE started_at END \
          WHERE id = ? RETURNING *",
     )
@@ -361,46 +374,75 @@ pub async fn heartbeat(
     shared: &Shared,
     request: &pb::HeartbeatRequest,
 ) -> Result<(bool, i64), Status> {
-    let now = now_ms();
-    let expires = now + shared.config.lease_ttl.as_millis() as i64;
+    let ttl = shared.config.lease_ttl.as_millis() as i64;
+    let interval = shared.config.progress_event_interval.as_millis() as i64;
     let progress = request.progress.as_ref().map(StoredProgress::from_pb);
-    let mut batch = EventBatch::default();
-    let mut tx = shared.db.write.begin().await.map_err(internal)?;
-    // The common case in one statement: the lease is held and current.
-    let extended: Option<(String, String, i64)> = sqlx::query_as(
-        "UPDATE tasks SET lease_expires_at = ?, progress = COALESCE(?, progress) \
-         WHERE id = ? AND fencing_token = ? AND worker_id = ? AND state = 'leased' \
-         AND lease_expires_at >= ? RETURNING job_id, stage, attempt",
+    let request = request.clone();
+    let (outcome, checked) = shared
+        .writer
+        .write(move |conn, batch| {
+            let (request, progress) = (request.clone(), progress.clone());
+            async move {
+                heartbeat_in(conn, batch, &request, progress.as_ref(), ttl, interval).await
+            }
+            .boxed()
+        })
+        .await?;
+    if checked {
+        // The slow path may have requeued an expired lease.
+        shared.wake_workers();
+    }
+    outcome
+}
+
+/// The heartbeat's work. Returns the reply and whether the lease had to be checked (the slow
+/// path, which may requeue an expired lease).
+async fn heartbeat_in(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    request: &pb::HeartbeatRequest,
+    progress: Option<&StoredProgress>,
+    ttl: i64,
+    interval: i64,
+) -> OpResult<(Result<(bool, i64), Status>, bool)> {
+    let now = now_ms();
+    let expires = now + ttl;
+    // The common case in one statement: the lease is held and current. Progress is always
+    // kept on the row; `progress_event_at` moves (and an event is stored) at most once per
+    // interval. Both assignments see the old row, so `progress_event_stored` is the decision.
+    let extended: Option<(String, String, i64, bool)> = sqlx::query_as(
+        "UPDATE tasks SET lease_expires_at = ?1, progress = COALESCE(?2, progress), \
+         progress_event_stored = (?2 IS NOT NULL AND ?3 - progress_event_at >= ?4), \
+         progress_event_at = CASE WHEN ?2 IS NOT NULL AND ?3 - progress_event_at >= ?4 \
+           THEN ?3 ELSE progress_event_at END \
+         WHERE id = ?5 AND fencing_token = ?6 AND worker_id = ?7 AND state = 'leased' \
+         AND lease_expires_at >= ?3 RETURNING job_id, stage, attempt, progress_event_stored",
     )
     .bind(expires)
-    .bind(progress.as_ref().map(StoredProgress::to_json))
+    .bind(progress.map(StoredProgress::to_json))
+    .bind(now)
+    .bind(interval)
     .bind(request.task_id as i64)
     .bind(request.fencing_token as i64)
     .bind(&request.worker_id)
-    .bind(now)
-    .fetch_optional(&mut *tx)
-    .await
-    .map_err(internal)?;
-    let Some((job_id, stage, attempt)) = extended else {
+    .fetch_optional(&mut *conn)
+    .await?;
+    let Some((job_id, stage, attempt, stored)) = extended else {
         // Not held: find out why (cancelled, expired, stale) for the reply.
         let held = check_lease(
-            &mut tx,
-            &mut batch,
+            conn,
+            batch,
             &request.worker_id,
             request.task_id,
             request.fencing_token,
             now,
         )
-        .await
-        .map_err(internal)?;
-        commit(tx, &mut batch).await.map_err(internal)?;
-        shared.publish(batch);
-        shared.wake_workers();
-        let held = held?;
-        return Ok((held.cancelled, held.task.lease_expires_at));
+        .await?;
+        let reply = held.map(|held| (held.cancelled, held.task.lease_expires_at));
+        return Ok((reply, true));
     };
-    if let Some(progress) = &progress {
-        batch.push(NewEvent {
+    if let Some(progress) = progress {
+        let event = NewEvent {
             job_id: &job_id,
             kind: TASK_PROGRESS,
             task_id: request.task_id as i64,
@@ -409,11 +451,14 @@ pub async fn heartbeat(
             attempt,
             progress: Some(progress),
             ..Default::default()
-        });
+        };
+        if stored {
+            batch.push(event);
+        } else {
+            batch.push_live(event);
+        }
     }
-    commit(tx, &mut batch).await.map_err(internal)?;
-    shared.publish(batch);
-    Ok((false, expires))
+    Ok((Ok((false, expires)), false))
 }
 
 /// Completes a task with its output manifest; dependents become ready and a job whose tasks
@@ -431,8 +476,35 @@ pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Res
         .map(|(k, v)| (k, *v))
         .collect();
     let patch = serde_json::json!({"metrics": metrics, "eta_seconds": 0.0}).to_string();
-    let mut batch = EventBatch::default();
-    let mut tx = shared.db.write.begin().await.map_err(internal)?;
+    let request = request.clone();
+    let (outcome, wake) = shared
+        .writer
+        .write(move |conn, batch| {
+            let (request, patch) = (request.clone(), patch.clone());
+            async move { complete_in(conn, batch, &request, &patch, now).await }.boxed()
+        })
+        .await?;
+    if wake {
+        shared.wake_workers();
+    }
+    let task = outcome?;
+    let seconds = (now - task.leased_at).max(0) as f64 / 1000.0;
+    metrics::histogram!("stylenerf_task_duration_seconds", "stage" => task.stage.clone())
+        .record(seconds);
+    metrics::counter!("stylenerf_tasks_finished_total", "stage" => task.stage, "outcome" => "succeeded")
+        .increment(1);
+    Ok(())
+}
+
+/// The completion's work. Returns the completed task (or why not) and whether waiting workers
+/// should look again (dependents became ready, or an expired lease was requeued).
+async fn complete_in(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    request: &pb::CompleteTaskRequest,
+    patch: &str,
+    now: i64,
+) -> OpResult<(Result<TaskRow, Status>, bool)> {
     // The common case in one statement: the lease is held and current. The final metrics are
     // merged into the progress, and a known total counts as reached.
     let completed: Option<TaskRow> = sqlx::query_as(
@@ -450,36 +522,31 @@ pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Res
     .bind(request.fencing_token as i64)
     .bind(&request.worker_id)
     .bind(now)
-    .fetch_optional(&mut *tx)
-    .await
-    .map_err(internal)?;
+    .fetch_optional(&mut *conn)
+    .await?;
     let Some(task) = completed else {
         // Not held: a cancelled task is fine, anything else is reported.
         let held = check_lease(
-            &mut tx,
-            &mut batch,
+            conn,
+            batch,
             &request.worker_id,
             request.task_id,
             request.fencing_token,
             now,
         )
-        .await
-        .map_err(internal)?;
-        commit(tx, &mut batch).await.map_err(internal)?;
-        shared.publish(batch);
-        shared.wake_workers();
-        return held.map(|_| ());
+        .await?;
+        return Ok((held.map(|held| held.task), true));
     };
     for (i, artifact) in request.outputs.iter().enumerate() {
         if !artifact.key.starts_with(&task.output_prefix) {
-            // Dropping the transaction rolls the completion back.
-            return Err(invalid(
+            // Rolls the completion back.
+            return Err(OpError::Abort(invalid(
                 format!("outputs[{i}].key"),
                 format!(
                     "{:?} is outside the task's output prefix {:?}",
                     artifact.key, task.output_prefix
                 ),
-            ));
+            )));
         }
     }
     // A task completes once (fencing), so it has no earlier manifest to replace.
@@ -498,7 +565,7 @@ pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Res
             " ON CONFLICT (key) DO UPDATE SET job_id = excluded.job_id, \
              task_id = excluded.task_id, size = excluded.size, sha256 = excluded.sha256",
         );
-        insert.build().execute(&mut *tx).await.map_err(internal)?;
+        insert.build().execute(&mut *conn).await?;
     }
     batch.push(NewEvent::task(
         &task.job_id,
@@ -508,54 +575,59 @@ pub async fn complete(shared: &Shared, request: &pb::CompleteTaskRequest) -> Res
         task.attempt,
         "",
     ));
-    let promoted = promote_dependents(&mut tx, &mut batch, &task)
-        .await
-        .map_err(internal)?;
+    let promoted = promote_dependents(conn, batch, &task).await?;
     if !promoted {
-        settle_job(&mut tx, &mut batch, &task.job_id)
-            .await
-            .map_err(internal)?;
+        settle_job(conn, batch, &task.job_id).await?;
     }
-    commit(tx, &mut batch).await.map_err(internal)?;
-    shared.publish(batch);
-    if promoted {
-        shared.wake_workers();
-    }
-    let seconds = (now - task.leased_at).max(0) as f64 / 1000.0;
-    metrics::histogram!("stylenerf_task_duration_seconds", "stage" => task.stage.clone())
-        .record(seconds);
-    metrics::counter!("stylenerf_tasks_finished_total", "stage" => task.stage, "outcome" => "succeeded")
-        .increment(1);
-    Ok(())
+    Ok((Ok(task), promoted))
 }
 
 /// Fails a task: retryable failures are requeued while attempts remain. Returns whether the
 /// task was requeued.
 pub async fn fail(shared: &Shared, request: &pb::FailTaskRequest) -> Result<bool, Status> {
+    let request = request.clone();
+    let (outcome, wake) = shared
+        .writer
+        .write(move |conn, batch| {
+            let request = request.clone();
+            async move { fail_in(conn, batch, &request).await }.boxed()
+        })
+        .await?;
+    if wake {
+        shared.wake_workers();
+    }
+    let (requeue, stage) = outcome?;
+    if let Some(stage) = stage {
+        metrics::counter!("stylenerf_tasks_finished_total", "stage" => stage,
+            "outcome" => if requeue { "retried" } else { "failed" })
+        .increment(1);
+    }
+    Ok(requeue)
+}
+
+/// The failure's work. Returns whether the task was requeued and its stage (none when the job
+/// had been cancelled), and whether waiting workers should look again.
+async fn fail_in(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    request: &pb::FailTaskRequest,
+) -> OpResult<(Result<(bool, Option<String>), Status>, bool)> {
     let now = now_ms();
-    let mut batch = EventBatch::default();
-    let mut tx = shared.db.write.begin().await.map_err(internal)?;
     let held = check_lease(
-        &mut tx,
-        &mut batch,
+        conn,
+        batch,
         &request.worker_id,
         request.task_id,
         request.fencing_token,
         now,
     )
-    .await
-    .map_err(internal)?;
+    .await?;
     let held = match held {
         Ok(held) => held,
-        Err(status) => {
-            commit(tx, &mut batch).await.map_err(internal)?;
-            shared.publish(batch);
-            shared.wake_workers();
-            return Err(status);
-        }
+        Err(status) => return Ok((Err(status), true)),
     };
     if held.cancelled {
-        return Ok(false);
+        return Ok((Ok((false, None)), false));
     }
     let task = held.task;
     let reason = if request.reason.is_empty() {
@@ -565,23 +637,11 @@ pub async fn fail(shared: &Shared, request: &pb::FailTaskRequest) -> Result<bool
     };
     let requeue = request.retryable && task.attempt < task.max_attempts;
     if requeue {
-        requeue_task(&mut tx, &mut batch, &task, &reason)
-            .await
-            .map_err(internal)?;
+        requeue_task(conn, batch, &task, &reason).await?;
     } else {
-        fail_task(&mut tx, &mut batch, &task, &reason)
-            .await
-            .map_err(internal)?;
+        fail_task(conn, batch, &task, &reason).await?;
     }
-    commit(tx, &mut batch).await.map_err(internal)?;
-    shared.publish(batch);
-    if requeue {
-        shared.wake_workers();
-    }
-    metrics::counter!("stylenerf_tasks_finished_total", "stage" => task.stage,
-        "outcome" => if requeue { "retried" } else { "failed" })
-    .increment(1);
-    Ok(requeue)
+    Ok((Ok((requeue, Some(task.stage))), requeue))
 }
 
 /// Puts a task back in the queue after a failed attempt.
@@ -683,12 +743,11 @@ pub async fn expire_leases(
 }
 
 /// The reaper's periodic pass.
-pub async fn reap(shared: &Shared) -> Result<(), sqlx::Error> {
-    let mut batch = EventBatch::default();
-    let mut tx = shared.db.write.begin().await?;
-    let requeued = expire_leases(&mut tx, &mut batch, now_ms()).await?;
-    commit(tx, &mut batch).await?;
-    shared.publish(batch);
+pub async fn reap(shared: &Shared) -> Result<(), Status> {
+    let requeued = shared
+        .writer
+        .write(|conn, batch| async move { Ok(expire_leases(conn, batch, now_ms()).await?) }.boxed())
+        .await?;
     if requeued {
         shared.wake_workers();
     }

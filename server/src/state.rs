@@ -1,17 +1,20 @@
 //! The state shared by the services and background tasks of one coordinator: database,
 //! storage, configuration, the live event feed, the "tasks became ready" notifier for
-//! long-polling workers, and the shutdown signal.
+//! long-polling workers, the group-commit writer, and the shutdown signal.
 
 use crate::config::CoordinatorConfig;
 use crate::db::Db;
 use crate::events::EventBatch;
 use crate::storage::Storage;
+use crate::writer::Writer;
 use std::sync::atomic::AtomicI64;
 use stylenerf_proto::v1 as pb;
 use tokio::sync::{broadcast, watch, Notify};
 
 pub struct Shared {
     pub db: Db,
+    /// Group-commit queue of the hot write paths.
+    pub writer: Writer,
     pub storage: Storage,
     pub config: CoordinatorConfig,
     /// Every committed event, for live `WatchJob` streams.
@@ -27,10 +30,7 @@ pub struct Shared {
 impl Shared {
     /// Publishes the events of a committed transaction.
     pub fn publish(&self, batch: EventBatch) {
-        for event in batch.events {
-            // No receiver is fine: nobody is watching.
-            let _ = self.events.send(event);
-        }
+        crate::events::publish(&self.events, batch);
     }
 
     /// Wakes every waiting `LeaseTask` long-poll.

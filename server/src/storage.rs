@@ -6,7 +6,9 @@ use crate::errors::{internal, invalid};
 use bytes::Bytes;
 use futures::{Stream, StreamExt, TryStreamExt};
 use object_store::path::Path as ObjectPath;
-use object_store::{GetOptions, GetRange, ObjectStore, ObjectStoreExt, WriteMultipart};
+use object_store::{
+    GetOptions, GetRange, ObjectStore, ObjectStoreExt, ObjectStoreScheme, WriteMultipart,
+};
 use sha2::{Digest, Sha256};
 use std::sync::Arc;
 use stylenerf_proto::v1 as pb;
@@ -20,6 +22,8 @@ pub const CHUNK_BYTES: usize = 1 << 20;
 #[derive(Clone, Debug)]
 pub struct Storage {
     store: Arc<dyn ObjectStore>,
+    /// The store's own description (for logs).
+    backend: String,
     /// The normalised URL workers with direct access can open.
     url: String,
 }
@@ -28,6 +32,16 @@ impl Storage {
     /// Opens a local directory (a plain path or `file://` URL; created if missing) or, with the
     /// `cloud` feature, an `s3://`, `gs://` or `az://` URL configured from the environment.
     pub fn open(location: &str) -> anyhow::Result<Storage> {
+        Storage::open_with_env(location, std::env::vars())
+    }
+
+    /// [`Storage::open`] with the environment given: a cloud store takes its options
+    /// (credentials, region, endpoint, …) from `AWS_*`, `GOOGLE_*` or `AZURE_*` variables, as
+    /// object_store's builders do with `from_env` (names are case-insensitive; others ignored).
+    pub fn open_with_env(
+        location: &str,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> anyhow::Result<Storage> {
         let local_dir = match location.strip_prefix("file://") {
             Some(path) => Some(std::path::PathBuf::from(path)),
             None if !location.contains("://") => Some(std::path::PathBuf::from(location)),
@@ -41,18 +55,40 @@ impl Storage {
             let store = object_store::local::LocalFileSystem::new_with_prefix(&dir)?
                 .with_automatic_cleanup(true);
             return Ok(Storage {
+                backend: store.to_string(),
                 store: Arc::new(store),
                 url: format!("file://{}", dir.display()),
             });
         }
         let url = url::Url::parse(location)
             .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
-        let options = std::env::vars().map(|(k, v)| (k.to_ascii_lowercase(), v));
-        let (store, prefix) = object_store::parse_url_opts(&url, options).map_err(|e| {
-            anyhow::anyhow!(
-                "storage URL {location:?}: {e} (cloud URLs need a build with the `cloud` feature)"
-            )
-        })?;
+        let (scheme, _) = ObjectStoreScheme::parse(&url)
+            .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
+        let cloud = matches!(
+            scheme,
+            ObjectStoreScheme::AmazonS3
+                | ObjectStoreScheme::GoogleCloudStorage
+                | ObjectStoreScheme::MicrosoftAzure
+        );
+        anyhow::ensure!(
+            cloud,
+            "storage URL {location:?}: expected a directory, file://, s3://, gs:// or az:// URL"
+        );
+        anyhow::ensure!(
+            cfg!(feature = "cloud"),
+            "storage URL {location:?}: cloud stores need a coordinator built with the `cloud` \
+             feature of stylenerf-server"
+        );
+        #[cfg(feature = "cloud")]
+        {
+            // HTTPS to the cloud APIs uses rustls with ring, as the gRPC server does (no
+            // aws-lc C build); an embedding program may have installed a provider already.
+            let _ = rustls::crypto::ring::default_provider().install_default();
+        }
+        let options = env.into_iter().map(|(k, v)| (k.to_ascii_lowercase(), v));
+        let (store, prefix) = object_store::parse_url_opts(&url, options)
+            .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
+        let backend = store.to_string();
         let store: Arc<dyn ObjectStore> = if prefix.as_ref().is_empty() {
             Arc::from(store)
         } else {
@@ -60,8 +96,14 @@ impl Storage {
         };
         Ok(Storage {
             store,
+            backend,
             url: location.trim_end_matches('/').to_string(),
         })
+    }
+
+    /// Which store this is, e.g. `AmazonS3(bucket)` or `LocalFileSystem(file:///dir)`.
+    pub fn backend(&self) -> &str {
+        &self.backend
     }
 
     pub fn url(&self) -> &str {
@@ -291,5 +333,62 @@ pub fn check_sha256(field: &str, sha: &str) -> Result<(), Status> {
         Ok(())
     } else {
         Err(invalid(field, "must be 64 lower-case hex digits (SHA-256)"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Storage;
+
+    /// Fake credentials: building a store does not contact the cloud.
+    fn fake_env() -> Vec<(String, String)> {
+        [
+            ("AWS_ACCESS_KEY_ID", "AKIDEXAMPLE"),
+            ("AWS_SECRET_ACCESS_KEY", "not-a-secret"),
+            ("AWS_REGION", "eu-west-1"),
+            ("AZURE_STORAGE_ACCOUNT_NAME", "account"),
+            ("AZURE_STORAGE_ACCOUNT_KEY", "bm90LWEta2V5"),
+            ("UNRELATED", "ignored"),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect()
+    }
+
+    #[test]
+    fn cloud_urls_pick_their_store() {
+        for (url, backend) in [
+            ("s3://bucket/some/prefix", "AmazonS3(bucket)"),
+            ("gs://bucket/some/prefix", "GoogleCloudStorage(bucket)"),
+            ("az://container/some/prefix", "MicrosoftAzure"),
+        ] {
+            let opened = Storage::open_with_env(url, fake_env());
+            if cfg!(feature = "cloud") {
+                let storage = opened.unwrap_or_else(|e| panic!("{url}: {e}"));
+                assert!(
+                    storage.backend().starts_with(backend),
+                    "{url}: {}",
+                    storage.backend()
+                );
+                assert_eq!(storage.url(), url);
+            } else {
+                let error = opened.expect_err("needs the cloud feature").to_string();
+                assert!(error.contains("`cloud` feature"), "{url}: {error}");
+            }
+        }
+    }
+
+    #[test]
+    fn directories_and_unknown_schemes() {
+        let dir = tempfile::tempdir().unwrap();
+        let local = Storage::open_with_env(dir.path().to_str().unwrap(), fake_env()).unwrap();
+        assert!(local.url().starts_with("file://"), "{}", local.url());
+        assert!(
+            local.backend().starts_with("LocalFileSystem"),
+            "{}",
+            local.backend()
+        );
+        let error = Storage::open_with_env("ftp://host/dir", fake_env()).unwrap_err();
+        assert!(error.to_string().contains("storage URL"), "{error}");
     }
 }

@@ -9,6 +9,7 @@ use crate::jobs::{self, NewJob};
 use crate::model::{job_state, job_state_from_pb};
 use crate::state::Shared;
 use crate::storage::check_key;
+use futures::FutureExt;
 use std::pin::Pin;
 use std::sync::Arc;
 use stylenerf_proto::v1 as pb;
@@ -245,16 +246,17 @@ impl JobApi {
             idempotency_key: idempotency_key.clone(),
             render,
         };
-        let mut batch = crate::events::EventBatch::default();
-        let mut tx = shared.db.write.begin().await.map_err(internal)?;
-        let created = jobs::insert_job(&mut tx, &mut batch, &new_job, shared.config.max_attempts)
-            .await
-            .map_err(internal)?;
-        crate::events::commit(tx, &mut batch)
-            .await
-            .map_err(internal)?;
+        let max_attempts = shared.config.max_attempts;
+        let new_job = Arc::new(new_job);
+        let created = shared
+            .writer
+            .write(move |conn, batch| {
+                let new_job = new_job.clone();
+                async move { Ok(jobs::insert_job(conn, batch, &new_job, max_attempts).await?) }
+                    .boxed()
+            })
+            .await?;
         let id = if created {
-            shared.publish(batch);
             shared.wake_workers();
             metrics::counter!("stylenerf_jobs_created_total").increment(1);
             job_id
@@ -338,10 +340,14 @@ async fn watch(
         tokio::select! {
             received = live.recv() => match received {
                 Ok(event) => {
-                    if event.job_id != job_id || event.seq as i64 <= last {
+                    // Seq 0: a live-only progress update (not stored, so never replayed).
+                    let live_only = event.seq == 0;
+                    if event.job_id != job_id || (!live_only && event.seq as i64 <= last) {
                         continue;
                     }
-                    last = event.seq as i64;
+                    if !live_only {
+                        last = event.seq as i64;
+                    }
                     let end = is_end(&event);
                     if wanted(&event) && tx.send(Ok(event)).await.is_err() {
                         return;

@@ -151,3 +151,65 @@ async fn cancellation_reaches_the_heartbeat() {
     assert_eq!(events.last().unwrap().job_state(), pb::JobState::Cancelled);
     server.shutdown().await.unwrap();
 }
+
+/// Completions arriving together are committed together (group commit); one that must be
+/// rolled back (an output outside its prefix) fails alone and the others still commit.
+#[tokio::test]
+async fn a_rejected_completion_does_not_take_its_group_down() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let mut leased = Vec::new();
+    for _ in 0..6 {
+        create_job(&mut client).await;
+        let mut worker = FakeWorker::register(&server, "cpu", 0).await;
+        let task = worker.lease(5000).await.expect("a task is ready");
+        leased.push((worker, task));
+    }
+    let calls = leased
+        .into_iter()
+        .enumerate()
+        .map(|(i, (mut worker, task))| async move {
+            let key = if i == 3 {
+                "jobs/elsewhere/out.bin".to_string()
+            } else {
+                format!("{}out.bin", task.output_prefix)
+            };
+            let reply = worker
+                .workers
+                .complete_task(pb::CompleteTaskRequest {
+                    worker_id: worker.id.clone(),
+                    task_id: task.task_id,
+                    fencing_token: task.fencing_token,
+                    outputs: vec![pb::Artifact {
+                        key,
+                        size: 1,
+                        sha256: "0".repeat(64),
+                    }],
+                    metrics: Default::default(),
+                })
+                .await;
+            (task, reply)
+        });
+    let results = futures::future::join_all(calls).await;
+    for (i, (task, reply)) in results.iter().enumerate() {
+        let job = get_job(&mut client, &task.job_id).await;
+        if i == 3 {
+            let status = reply.as_ref().unwrap_err();
+            assert_eq!(status.code(), tonic::Code::InvalidArgument);
+            assert_eq!(bad_fields(status), ["outputs[0].key"]);
+            assert_eq!(job.tasks[0].state(), pb::TaskState::Leased, "rolled back");
+            assert!(job.tasks[0].outputs.is_empty());
+        } else {
+            assert!(reply.is_ok(), "task {i}: {reply:?}");
+            assert_eq!(job.tasks[0].state(), pb::TaskState::Succeeded);
+            assert_eq!(job.tasks[0].outputs.len(), 1);
+            assert_eq!(
+                job.tasks[1].state(),
+                pb::TaskState::Ready,
+                "dependent promoted"
+            );
+        }
+    }
+    server.shutdown().await.unwrap();
+}

@@ -5,6 +5,8 @@
 mod auth;
 mod leases;
 mod lifecycle;
+mod progress;
 mod restart;
 mod support;
+mod tls;
 mod uploads;

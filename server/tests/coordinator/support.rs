@@ -75,7 +75,7 @@ pub async fn channel(handle: &CoordinatorHandle) -> Channel {
         .expect("connects")
 }
 
-fn bearer(token: Option<&str>) -> Bearer {
+pub fn bearer(token: Option<&str>) -> Bearer {
     Bearer(token.map(|t| format!("Bearer {t}").parse().unwrap()))
 }
 
