@@ -11,6 +11,7 @@ mod nerf;
 mod scene;
 mod stylize;
 mod weights;
+mod worker;
 
 /// StylizedNeRF: consistent 3D scene stylization as a distributed training service.
 #[derive(Debug, Parser)]
@@ -55,6 +56,8 @@ pub enum Command {
     Weights(weights::WeightsCommand),
     /// Run the coordinator: the gRPC job and worker APIs, SQLite, artifacts, metrics.
     Coordinator(Box<coordinator::CoordinatorCommand>),
+    /// Run a worker: lease stage tasks from a coordinator and train them (CPU or CUDA).
+    Worker(Box<worker::WorkerCommand>),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -90,6 +93,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Stylize(cmd) => stylize::run(cmd),
         Command::Weights(cmd) => weights::run(cmd),
         Command::Coordinator(cmd) => coordinator::run(*cmd),
+        Command::Worker(cmd) => worker::run(*cmd),
         Command::Bench(BenchCommand::Coordinator(options)) => bench_coordinator::run(options),
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
