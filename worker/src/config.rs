@@ -166,3 +166,40 @@ impl WorkerArgs {
         c
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::{CommandFactory, Parser};
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        worker: WorkerArgs,
+    }
+
+    #[test]
+    fn flags_build_the_config() {
+        Cli::command().debug_assert();
+        let cli = Cli::parse_from([
+            "w",
+            "--endpoint",
+            "http://c:1",
+            "--memory-mib",
+            "512",
+            "--label",
+            "zone=eu",
+            "--label",
+            "gpu=a100",
+            "--max-tasks",
+            "2",
+            "--checkpoint-every-secs",
+            "0",
+        ]);
+        let c = cli.worker.into_config();
+        assert_eq!(c.endpoint, "http://c:1");
+        assert_eq!(c.memory_bytes, 512 << 20);
+        assert_eq!(c.labels, ["zone=eu", "gpu=a100"]);
+        assert_eq!((c.max_tasks, c.checkpoint_every), (2, None));
+    }
+}
