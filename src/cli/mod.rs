@@ -5,6 +5,8 @@ use clap::{Args, Parser, Subcommand};
 mod bench_coordinator;
 mod bench_nerf;
 mod bench_vgg;
+mod client;
+mod client_view;
 mod common;
 mod coordinator;
 mod nerf;
@@ -58,6 +60,8 @@ pub enum Command {
     Coordinator(Box<coordinator::CoordinatorCommand>),
     /// Run a worker: lease stage tasks from a coordinator and train them (CPU or CUDA).
     Worker(Box<worker::WorkerCommand>),
+    #[command(flatten)]
+    Client(client::ClientCommand),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -94,6 +98,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Weights(cmd) => weights::run(cmd),
         Command::Coordinator(cmd) => coordinator::run(*cmd),
         Command::Worker(cmd) => worker::run(*cmd),
+        Command::Client(cmd) => client::run(cmd),
         Command::Bench(BenchCommand::Coordinator(options)) => bench_coordinator::run(options),
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
