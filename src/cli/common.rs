@@ -3,35 +3,11 @@
 
 use std::time::Duration;
 
-use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use stylenerf_engine::device::parse_device;
 use stylenerf_engine::preset::{apply_overrides, parse_override, Preset};
 use stylenerf_engine::stages::StageControl;
-
-/// `--device cpu|cuda[:N]`.
-pub fn parse_device(s: &str) -> anyhow::Result<candle_core::Device> {
-    match s {
-        "cpu" => Ok(candle_core::Device::Cpu),
-        _ => {
-            let ordinal = match s.strip_prefix("cuda") {
-                Some("") => 0,
-                Some(n) => n
-                    .strip_prefix(':')
-                    .and_then(|n| n.parse().ok())
-                    .with_context(|| {
-                        format!("--device: cannot parse `{s}` (expected cpu, cuda or cuda:N)")
-                    })?,
-                None => {
-                    anyhow::bail!("--device: unknown device `{s}` (expected cpu, cuda or cuda:N)")
-                }
-            };
-            candle_core::Device::new_cuda(ordinal).with_context(|| {
-                format!("--device {s}: CUDA is not available (build with `--features cuda`)")
-            })
-        }
-    }
-}
 
 /// Preset, overrides and device, shared by every training command.
 #[derive(Debug, Clone, Args)]
@@ -62,7 +38,7 @@ impl TrainingArgs {
     }
 
     pub fn device(&self) -> anyhow::Result<candle_core::Device> {
-        parse_device(&self.device)
+        Ok(parse_device(&self.device)?)
     }
 }
 

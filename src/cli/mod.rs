@@ -5,6 +5,8 @@ use clap::{Args, Parser, Subcommand};
 mod bench_coordinator;
 mod bench_nerf;
 mod bench_vgg;
+mod client;
+mod client_view;
 mod common;
 mod coordinator;
 mod nerf;
@@ -12,6 +14,7 @@ mod run;
 mod scene;
 mod stylize;
 mod weights;
+mod worker;
 
 /// StylizedNeRF: consistent 3D scene stylization as a distributed training service.
 #[derive(Debug, Parser)]
@@ -62,6 +65,10 @@ pub enum Command {
     /// Evaluate a finished `run`: consistency (warped error) and style fidelity of NeRF→AdaIN,
     /// the fine-tuned decoder and the stylized NeRF.
     Eval(run::EvalArgs),
+    /// Run a worker: lease stage tasks from a coordinator and train them (CPU or CUDA).
+    Worker(Box<worker::WorkerCommand>),
+    #[command(flatten)]
+    Client(client::ClientCommand),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -99,6 +106,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Coordinator(cmd) => coordinator::run(*cmd),
         Command::Run(args) => run::run(*args),
         Command::Eval(args) => run::eval(args),
+        Command::Worker(cmd) => worker::run(*cmd),
+        Command::Client(cmd) => client::run(cmd),
         Command::Bench(BenchCommand::Coordinator(options)) => bench_coordinator::run(options),
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),

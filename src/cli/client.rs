@@ -1,0 +1,869 @@
+//! The client commands: `submit`, `status`, `watch`, `list`, `cancel`, `fetch`, `render` and
+//! `events`, talking to a coordinator through `stylenerf-client`. Each takes `--endpoint` /
+//! `--token` (or `STYLENERF_ENDPOINT` / `STYLENERF_TOKEN`) and `--output text|json`: text for
+//! people, one JSON document (or one per line for event streams) for scripts.
+
+use super::client_view::WatchView;
+use anyhow::Context;
+use clap::{Args, Subcommand, ValueEnum};
+use futures::StreamExt;
+use serde_json::{json, Value};
+use std::io::Write;
+use std::path::PathBuf;
+use stylenerf_client::{
+    json as to_json, names, pb, Client, ConnectOptions, DownloadOptions, Input, JobSpec,
+    ListFilter, RenderSpec, WatchOptions, DEFAULT_ENDPOINT,
+};
+use stylenerf_engine::preset::parse_override;
+
+/// How results are printed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum OutputFormat {
+    Text,
+    Json,
+}
+
+/// Where the coordinator is and how to print results (shared by every client command).
+#[derive(Debug, Clone, Args)]
+pub struct ConnectionArgs {
+    /// Coordinator URL: http://host:port, https://host:port or host:port.
+    #[arg(long, env = "STYLENERF_ENDPOINT", default_value = DEFAULT_ENDPOINT)]
+    pub endpoint: String,
+    /// Bearer token of a `client` (or `admin`) role; not needed with --insecure-no-auth.
+    #[arg(long, env = "STYLENERF_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// CA certificate (PEM) that signed the coordinator's TLS certificate [default: the
+    /// system CA bundle].
+    #[arg(long, env = "STYLENERF_CA_CERT")]
+    pub ca_cert: Option<PathBuf>,
+    /// Output format.
+    #[arg(long, value_enum, default_value_t = OutputFormat::Text)]
+    pub output: OutputFormat,
+}
+
+impl ConnectionArgs {
+    async fn connect(&self) -> anyhow::Result<Client> {
+        let mut options = ConnectOptions::new(self.endpoint.clone(), self.token.clone());
+        options.ca_certificate = self.ca_cert.clone();
+        Ok(Client::connect_with(&options).await?)
+    }
+
+    fn json(&self) -> bool {
+        self.output == OutputFormat::Json
+    }
+}
+
+/// The client commands (flattened into the top-level command list).
+#[derive(Debug, Subcommand)]
+pub enum ClientCommand {
+    /// Upload a scene folder and style images and create a job; prints the job id.
+    Submit(SubmitArgs),
+    /// Show a job and its stages.
+    Status(JobArgs),
+    /// Follow a job with a progress bar per stage until it ends (exit status 1 when it fails
+    /// or is cancelled).
+    Watch(JobArgs),
+    /// List your jobs, newest first.
+    List(ListArgs),
+    /// Cancel a job.
+    Cancel(CancelArgs),
+    /// Download a job's outputs into a folder.
+    Fetch(FetchArgs),
+    /// Render a trained job again with another camera path or style blend.
+    Render(RenderArgs),
+    /// Print a job's event log, following it until the job ends.
+    Events(EventsArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct SubmitArgs {
+    /// Scene: a folder with transforms.json / transforms_train.json / poses_bounds.npy and its
+    /// images, a .tar of one, `upload:<id>` or `object:<key>`.
+    #[arg(long, value_name = "DIR")]
+    pub data: String,
+    /// Style image (repeat for several styles); also `upload:<id>` or `object:<key>`.
+    #[arg(long = "style", value_name = "IMAGE", required = true)]
+    pub styles: Vec<String>,
+    /// Training preset: tiny, quick, standard or paper [default: the coordinator's, quick].
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// Override a setting of one stage: `--set nerf_pretrain.steps=500
+    /// --set decoder_pretrain.style_weight=2` (`<stage>.<setting path>=<JSON or text>`).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+    /// Display name of the job.
+    #[arg(long, default_value = "")]
+    pub name: String,
+    /// Makes retries safe: the same key returns the job created first.
+    #[arg(long)]
+    pub idempotency_key: Option<String>,
+    /// Run only on CUDA workers.
+    #[arg(long)]
+    pub require_cuda: bool,
+    /// Worker label every task needs (repeatable), e.g. `zone=eu`.
+    #[arg(long = "label")]
+    pub labels: Vec<String>,
+    /// Memory each task needs, in MiB [default: the coordinator's per-stage estimate].
+    #[arg(long)]
+    pub memory_mib: Option<u64>,
+    #[command(flatten)]
+    pub render: RenderOptions,
+    /// Follow the job until it ends (like `stylenerf watch`).
+    #[arg(long)]
+    pub wait: bool,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+/// Camera path and style blend of a stylized render.
+#[derive(Debug, Clone, Args)]
+pub struct RenderOptions {
+    /// Style blend of the final render: `INDEX:WEIGHT,...` over the job's styles in the order
+    /// given at submission (`0:0.3,1:0.7`), or one index [default: every style in turn].
+    #[arg(long, value_name = "BLEND")]
+    pub blend: Option<String>,
+    /// Frames to render [default: the preset's].
+    #[arg(long)]
+    pub frames: Option<u32>,
+    /// Camera path kind: orbit, spiral, interpolate or train [default: the preset's].
+    #[arg(long = "camera-path", value_name = "KIND")]
+    pub camera_path: Option<String>,
+    /// Frames per second of the animation [default: the preset's].
+    #[arg(long)]
+    pub fps: Option<f64>,
+}
+
+impl RenderOptions {
+    fn camera_path(&self) -> Option<pb::CameraPath> {
+        (self.frames.is_some() || self.camera_path.is_some() || self.fps.is_some()).then(|| {
+            pb::CameraPath {
+                kind: self.camera_path.clone().unwrap_or_default(),
+                num_frames: self.frames.unwrap_or(0),
+                fps: self.fps.unwrap_or(0.0),
+                params_json: String::new(),
+            }
+        })
+    }
+
+    fn style_blend(&self) -> anyhow::Result<Vec<pb::StyleWeight>> {
+        self.blend.as_deref().map_or(Ok(Vec::new()), parse_blend)
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct JobArgs {
+    /// Job id (`j-...`).
+    pub job: String,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct ListArgs {
+    /// Only jobs in these states (repeatable): queued, running, succeeded, failed, cancelled.
+    #[arg(long = "state", value_parser = parse_state)]
+    pub states: Vec<pb::JobState>,
+    /// Only this owner's jobs (admin tokens).
+    #[arg(long)]
+    pub owner: Option<String>,
+    /// Show at most this many jobs.
+    #[arg(long, default_value_t = 50)]
+    pub limit: usize,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct CancelArgs {
+    /// Job id.
+    pub job: String,
+    /// Why (kept in the job's error and events).
+    #[arg(long, default_value = "cancelled from the command line")]
+    pub reason: String,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct FetchArgs {
+    /// Job id.
+    pub job: String,
+    /// Destination folder [default: ./<job id>].
+    #[arg(short = 'o', long = "out", value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Only artifacts under this prefix of the job, e.g. `render_stylized/`.
+    #[arg(long, default_value = "")]
+    pub prefix: String,
+    /// Also download the inputs (dataset archive, style images).
+    #[arg(long)]
+    pub inputs: bool,
+    /// Also download training checkpoints.
+    #[arg(long)]
+    pub checkpoints: bool,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// Job id.
+    pub job: String,
+    /// Style blend `INDEX:WEIGHT,...` (`0:0.3,1:0.7`) or one style index [default: every
+    /// style in turn].
+    #[arg(long = "style", value_name = "BLEND")]
+    pub blend: Option<String>,
+    /// Frames to render [default: the preset's].
+    #[arg(long)]
+    pub frames: Option<u32>,
+    /// Camera path kind: orbit, spiral, interpolate or train [default: the preset's].
+    #[arg(long = "camera-path", value_name = "KIND")]
+    pub camera_path: Option<String>,
+    /// Frames per second [default: the preset's].
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// Override a setting for this render only: `--set render_stylized.<setting>=<value>`.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+    /// Follow the job until the render ends.
+    #[arg(long)]
+    pub wait: bool,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct EventsArgs {
+    /// Job id.
+    pub job: String,
+    /// Only events after this sequence number.
+    #[arg(long, default_value_t = 0)]
+    pub after: u64,
+    /// Leave out progress events.
+    #[arg(long)]
+    pub no_progress: bool,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+fn parse_state(text: &str) -> Result<pb::JobState, String> {
+    names::parse_job_state(text).ok_or_else(|| {
+        format!("unknown job state {text:?} (queued, running, succeeded, failed, cancelled)")
+    })
+}
+
+/// `0:0.3,1:0.7` (or a single index) as style weights.
+pub fn parse_blend(text: &str) -> anyhow::Result<Vec<pb::StyleWeight>> {
+    text.split(',')
+        .map(str::trim)
+        .filter(|part| !part.is_empty())
+        .map(|part| {
+            let (index, weight) = part.split_once(':').unwrap_or((part, "1"));
+            let style_index = index.trim().parse().with_context(|| {
+                format!("style blend {part:?}: {index:?} is not a style index (0, 1, ...)")
+            })?;
+            let weight = weight
+                .trim()
+                .parse()
+                .with_context(|| format!("style blend {part:?}: {weight:?} is not a number"))?;
+            Ok(pb::StyleWeight {
+                style_index,
+                weight,
+            })
+        })
+        .collect()
+}
+
+/// `--set <stage>.<path>=value` arguments as the overrides map. Workers address overrides by
+/// stage (docs/API.md, "Stage overrides"), so a key without a stage prefix is refused here
+/// instead of failing the job's first task.
+pub fn parse_overrides(list: &[String]) -> anyhow::Result<serde_json::Map<String, Value>> {
+    let stages: Vec<String> = (1..=5).map(names::stage).collect();
+    list.iter()
+        .map(|text| {
+            let (key, value) = parse_override(text)?;
+            let stage = key.split('.').next().unwrap_or_default();
+            anyhow::ensure!(
+                key.contains('.') && stages.iter().any(|s| s == stage),
+                "--set {text}: prefix the setting with its stage, one of {} (e.g. \
+                 nerf_pretrain.steps=500)",
+                stages.join(", ")
+            );
+            Ok((key, value))
+        })
+        .collect()
+}
+
+/// `upload:<id>` and `object:<key>` reference stored inputs; anything else is a local path.
+fn parse_input(text: &str) -> Input {
+    if let Some(id) = text.strip_prefix("upload:") {
+        Input::UploadId(id.to_string())
+    } else if let Some(key) = text.strip_prefix("object:") {
+        Input::ObjectKey(key.to_string())
+    } else {
+        Input::path(text)
+    }
+}
+
+pub fn run(command: ClientCommand) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let mut stdout = std::io::stdout().lock();
+    runtime.block_on(execute(command, &mut stdout))
+}
+
+/// Runs one client command, writing its result to `out` (progress goes to stderr).
+pub async fn execute(command: ClientCommand, out: &mut dyn Write) -> anyhow::Result<()> {
+    match command {
+        ClientCommand::Submit(args) => submit(args, out).await,
+        ClientCommand::Status(args) => {
+            let client = args.connection.connect().await?;
+            let job = client.get(&args.job).await?;
+            if args.connection.json() {
+                print_json(out, &to_json::job(&job))
+            } else {
+                print_job(out, &job)
+            }
+        }
+        ClientCommand::Watch(args) => {
+            let client = args.connection.connect().await?;
+            follow(&client, &args.job, args.connection.json(), out).await
+        }
+        ClientCommand::List(args) => list(args, out).await,
+        ClientCommand::Cancel(args) => {
+            let client = args.connection.connect().await?;
+            let job = client.cancel(&args.job, &args.reason).await?;
+            if args.connection.json() {
+                print_json(out, &to_json::job(&job))
+            } else {
+                writeln!(out, "{}: {}", job.id, names::job_state(job.state))?;
+                Ok(())
+            }
+        }
+        ClientCommand::Fetch(args) => fetch(args, out).await,
+        ClientCommand::Render(args) => render(args, out).await,
+        ClientCommand::Events(args) => events(args, out).await,
+    }
+}
+
+fn print_json(out: &mut dyn Write, value: &Value) -> anyhow::Result<()> {
+    serde_json::to_writer_pretty(&mut *out, value)?;
+    writeln!(out)?;
+    Ok(())
+}
+
+async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let json = args.connection.json();
+    let spec = JobSpec {
+        name: args.name.clone(),
+        dataset: Some(parse_input(&args.data)),
+        styles: args.styles.iter().map(|s| parse_input(s)).collect(),
+        preset: args.preset.clone(),
+        overrides: parse_overrides(&args.overrides)?,
+        idempotency_key: args.idempotency_key.clone(),
+        requirements: pb::Requirements {
+            require_cuda: args.require_cuda,
+            labels: args.labels.clone(),
+            memory_bytes: args.memory_mib.map_or(0, |mib| mib << 20),
+        },
+        camera_path: args.render.camera_path(),
+        style_blend: args.render.style_blend()?,
+    };
+    let client = args.connection.connect().await?;
+    let submission = client.submit(&spec).await?;
+    let job_id = submission.job.id.clone();
+    if json {
+        let mut job = submission.job.clone();
+        if args.wait {
+            job = client.wait(&job_id).await?;
+        }
+        print_json(
+            out,
+            &json!({
+                "job": to_json::job(&job),
+                "created": submission.created,
+                "uploads": submission.uploads.iter().map(to_json::receipt).collect::<Vec<_>>(),
+            }),
+        )?;
+        return terminal_outcome(&job, args.wait);
+    }
+    for receipt in &submission.uploads {
+        eprintln!("uploaded {} ({})", receipt.upload_id, receipt.summary);
+    }
+    if !submission.created {
+        eprintln!("an existing job has this idempotency key");
+    }
+    writeln!(out, "{job_id}")?;
+    out.flush()?;
+    if args.wait {
+        follow(&client, &job_id, false, &mut std::io::sink()).await?;
+    }
+    Ok(())
+}
+
+/// With `--wait`: an error (exit status 1) unless the job succeeded.
+fn terminal_outcome(job: &pb::Job, waited: bool) -> anyhow::Result<()> {
+    if !waited || job.state == pb::JobState::Succeeded as i32 {
+        return Ok(());
+    }
+    let reason = if job.error.is_empty() {
+        String::new()
+    } else {
+        format!(": {}", job.error)
+    };
+    anyhow::bail!("job {} {}{reason}", job.id, names::job_state(job.state))
+}
+
+/// Follows the job until it is terminal: progress bars (text) or one event per line (JSON).
+async fn follow(
+    client: &Client,
+    job_id: &str,
+    json: bool,
+    out: &mut dyn Write,
+) -> anyhow::Result<()> {
+    let job = client.get(job_id).await?;
+    let mut events = client.watch(job_id, WatchOptions::default()).await?;
+    let mut view = (!json).then(|| WatchView::new(&job));
+    while let Some(event) = events.next().await {
+        let event = event?;
+        match &mut view {
+            Some(view) => view.apply(&event),
+            None => {
+                serde_json::to_writer(&mut *out, &to_json::event(&event))?;
+                writeln!(out)?;
+                out.flush()?;
+            }
+        }
+    }
+    let job = client.get(job_id).await?;
+    if let Some(view) = view {
+        view.finish(&job);
+    }
+    terminal_outcome(&job, true)
+}
+
+async fn list(args: ListArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let client = args.connection.connect().await?;
+    let filter = ListFilter {
+        states: args.states.clone(),
+        owner: args.owner.clone(),
+        page_size: args.limit.clamp(1, 500) as u32,
+        ..Default::default()
+    };
+    let jobs = client.list_all(&filter, args.limit).await?;
+    if args.connection.json() {
+        return print_json(out, &Value::Array(jobs.iter().map(to_json::job).collect()));
+    }
+    if jobs.is_empty() {
+        writeln!(out, "no jobs")?;
+        return Ok(());
+    }
+    writeln!(
+        out,
+        "{:<36}  {:<10}  {:<8}  {:<10}  NAME",
+        "JOB", "STATE", "PRESET", "CREATED"
+    )?;
+    for job in &jobs {
+        writeln!(
+            out,
+            "{:<36}  {:<10}  {:<8}  {:<10}  {}",
+            job.id,
+            names::job_state(job.state),
+            job.preset,
+            ago(job.created_at_ms),
+            job.name
+        )?;
+    }
+    Ok(())
+}
+
+async fn fetch(args: FetchArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let client = args.connection.connect().await?;
+    let dest = args.out.clone().unwrap_or_else(|| PathBuf::from(&args.job));
+    let options = DownloadOptions {
+        prefix: args.prefix.clone(),
+        include_inputs: args.inputs,
+        include_checkpoints: args.checkpoints,
+    };
+    let files = client.download_with(&args.job, &dest, &options).await?;
+    if args.connection.json() {
+        return print_json(
+            out,
+            &json!({
+                "job_id": args.job,
+                "dir": dest,
+                "files": files.iter().map(to_json::downloaded).collect::<Vec<_>>(),
+            }),
+        );
+    }
+    let mut bytes = 0;
+    for file in &files {
+        let verb = if file.skipped { "up to date" } else { "wrote" };
+        writeln!(
+            out,
+            "{verb:>10}  {}  ({})",
+            file.path.display(),
+            human_bytes(file.size)
+        )?;
+        bytes += file.size;
+    }
+    writeln!(
+        out,
+        "{} files, {} in {}",
+        files.len(),
+        human_bytes(bytes),
+        dest.display()
+    )?;
+    Ok(())
+}
+
+async fn render(args: RenderArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let options = RenderOptions {
+        blend: args.blend.clone(),
+        frames: args.frames,
+        camera_path: args.camera_path.clone(),
+        fps: args.fps,
+    };
+    let spec = RenderSpec {
+        camera_path: options.camera_path(),
+        style_blend: options.style_blend()?,
+        overrides: parse_overrides(&args.overrides)?,
+    };
+    let client = args.connection.connect().await?;
+    let task = client.render(&args.job, &spec).await?;
+    if args.connection.json() {
+        let mut value = json!({"task": to_json::task(&task)});
+        if args.wait {
+            let job = client.wait(&args.job).await?;
+            value["job"] = to_json::job(&job);
+            print_json(out, &value)?;
+            return terminal_outcome(&job, true);
+        }
+        return print_json(out, &value);
+    }
+    writeln!(
+        out,
+        "render task {} of {} writes to {}",
+        task.id, task.job_id, task.output_prefix
+    )?;
+    out.flush()?;
+    if args.wait {
+        follow(&client, &args.job, false, &mut std::io::sink()).await?;
+    }
+    Ok(())
+}
+
+async fn events(args: EventsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let client = args.connection.connect().await?;
+    let options = WatchOptions {
+        after_seq: args.after,
+        skip_progress: args.no_progress,
+    };
+    let mut events = client.watch(&args.job, options).await?;
+    while let Some(event) = events.next().await {
+        let event = event?;
+        if args.connection.json() {
+            serde_json::to_writer(&mut *out, &to_json::event(&event))?;
+            writeln!(out)?;
+        } else {
+            writeln!(out, "{}", describe_event(&event))?;
+        }
+        out.flush()?;
+    }
+    Ok(())
+}
+
+/// One line per event: `#12 14:03:21 nerf_pretrain leased (attempt 1)`.
+fn describe_event(event: &pb::Event) -> String {
+    let kind = pb::EventKind::try_from(event.kind).unwrap_or_default();
+    let what = match kind {
+        pb::EventKind::JobCreated => "job created".to_string(),
+        pb::EventKind::JobState => format!("job {}", names::job_state(event.job_state)),
+        pb::EventKind::TaskState => format!(
+            "{} {} (attempt {})",
+            names::stage(event.stage),
+            names::task_state(event.task_state),
+            event.attempt
+        ),
+        pb::EventKind::TaskProgress => format!(
+            "{} {}",
+            names::stage(event.stage),
+            event
+                .progress
+                .as_ref()
+                .map(describe_progress)
+                .unwrap_or_default()
+        ),
+        pb::EventKind::Unspecified => names::event_kind(event.kind),
+    };
+    let message = if event.message.is_empty() {
+        String::new()
+    } else {
+        format!(": {}", event.message)
+    };
+    format!("#{} {} {what}{message}", event.seq, clock(event.at_ms))
+}
+
+/// `120/800 loss 0.0123 psnr 24.31 ETA 1m20s`.
+pub fn describe_progress(p: &pb::Progress) -> String {
+    let mut parts = Vec::new();
+    if p.total > 0 {
+        parts.push(format!("{}/{}", p.step, p.total));
+    } else if p.step > 0 {
+        parts.push(format!("step {}", p.step));
+    }
+    if p.loss != 0.0 {
+        parts.push(format!("loss {:.4}", p.loss));
+    }
+    let mut metrics: Vec<_> = p.metrics.iter().collect();
+    metrics.sort_by(|a, b| a.0.cmp(b.0));
+    for (name, value) in metrics {
+        parts.push(format!("{name} {value:.2}"));
+    }
+    if p.eta_seconds >= 0.0 && p.total > 0 && p.step < p.total {
+        parts.push(format!("ETA {}", duration(p.eta_seconds)));
+    }
+    if !p.message.is_empty() {
+        parts.push(p.message.clone());
+    }
+    parts.join(" ")
+}
+
+fn print_job(out: &mut dyn Write, job: &pb::Job) -> anyhow::Result<()> {
+    let name = if job.name.is_empty() {
+        String::new()
+    } else {
+        format!(" ({})", job.name)
+    };
+    writeln!(out, "job {}{name}: {}", job.id, names::job_state(job.state))?;
+    writeln!(
+        out,
+        "  preset {}, owner {}, created {}",
+        job.preset,
+        job.owner,
+        ago(job.created_at_ms)
+    )?;
+    if !job.error.is_empty() {
+        writeln!(out, "  error: {}", job.error)?;
+    }
+    for task in &job.tasks {
+        let mut detail = match pb::TaskState::try_from(task.state).unwrap_or_default() {
+            pb::TaskState::Leased => task
+                .progress
+                .as_ref()
+                .map(describe_progress)
+                .unwrap_or_default(),
+            pb::TaskState::Succeeded if task.finished_at_ms > 0 && task.started_at_ms > 0 => {
+                format!(
+                    "in {}",
+                    duration((task.finished_at_ms - task.started_at_ms) as f64 / 1000.0)
+                )
+            }
+            _ => String::new(),
+        };
+        if !task.error.is_empty() {
+            detail = format!("{detail} error: {}", task.error);
+        }
+        writeln!(
+            out,
+            "  {:<16} {:<10} attempt {}/{}  {}",
+            names::stage(task.stage),
+            names::task_state(task.state),
+            task.attempt,
+            task.max_attempts,
+            detail.trim()
+        )?;
+    }
+    Ok(())
+}
+
+fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// `3m ago`.
+fn ago(at_ms: i64) -> String {
+    if at_ms <= 0 {
+        return "-".into();
+    }
+    format!(
+        "{} ago",
+        duration(((now_ms() - at_ms).max(0) as f64) / 1000.0)
+    )
+}
+
+/// `14:03:21` (UTC) of an epoch-ms time.
+fn clock(at_ms: i64) -> String {
+    let secs = at_ms.div_euclid(1000).rem_euclid(86_400);
+    format!("{:02}:{:02}:{:02}", secs / 3600, secs / 60 % 60, secs % 60)
+}
+
+/// `45s`, `12m03s`, `2h05m`.
+pub fn duration(seconds: f64) -> String {
+    let s = seconds.max(0.0).round() as u64;
+    match s {
+        0..=59 => format!("{s}s"),
+        60..=3599 => format!("{}m{:02}s", s / 60, s % 60),
+        _ => format!("{}h{:02}m", s / 3600, s / 60 % 60),
+    }
+}
+
+fn human_bytes(bytes: u64) -> String {
+    const UNITS: [&str; 4] = ["B", "KiB", "MiB", "GiB"];
+    let mut value = bytes as f64;
+    let mut unit = 0;
+    while value >= 1024.0 && unit + 1 < UNITS.len() {
+        value /= 1024.0;
+        unit += 1;
+    }
+    if unit == 0 {
+        format!("{bytes} B")
+    } else {
+        format!("{value:.1} {}", UNITS[unit])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cli::{Cli, Command};
+    use clap::Parser;
+    use stylenerf_engine::scene::generate::{generate, GenerateOptions};
+
+    /// Parses a command line and runs the client command it names, returning its stdout.
+    async fn run_line(args: &[&str]) -> anyhow::Result<String> {
+        let cli = Cli::try_parse_from(std::iter::once("stylenerf").chain(args.iter().copied()))?;
+        let Command::Client(command) = cli.command else {
+            panic!("not a client command: {args:?}");
+        };
+        let mut out = Vec::new();
+        execute(command, &mut out).await?;
+        Ok(String::from_utf8(out)?)
+    }
+
+    #[test]
+    fn blends_and_overrides_parse() {
+        let blend = parse_blend("0:0.3, 1:0.7").unwrap();
+        assert_eq!((blend[1].style_index, blend[1].weight), (1, 0.7));
+        assert_eq!(parse_blend("2").unwrap()[0].weight, 1.0);
+        assert!(parse_blend("a:1").is_err());
+        let overrides = parse_overrides(&[
+            "nerf_pretrain.steps=500".into(),
+            "render_stylized.mode=fast".into(),
+        ])
+        .unwrap();
+        assert_eq!(overrides["nerf_pretrain.steps"], 500);
+        assert_eq!(overrides["render_stylized.mode"], "fast");
+        let err = parse_overrides(&["steps=500".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("prefix the setting with its stage"), "{err}");
+        assert_eq!(duration(75.0), "1m15s");
+        assert_eq!(clock(3_723_000), "01:02:03");
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn commands_print_json() {
+        let dir = tempfile::tempdir().unwrap();
+        let coordinator = stylenerf_server::Coordinator::start(
+            stylenerf_server::CoordinatorConfig::local(&dir.path().join("coord")),
+        )
+        .await
+        .unwrap();
+        let endpoint = coordinator.endpoint();
+        let scene = dir.path().join("scene");
+        let options = GenerateOptions {
+            size: 8,
+            views: 2,
+            ..Default::default()
+        };
+        generate(&options, &scene).unwrap();
+        let style = std::fs::read_dir(scene.join("images"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .find(|p| p.extension().is_some_and(|e| e == "png"))
+            .unwrap();
+        let (scene, style) = (scene.display().to_string(), style.display().to_string());
+        let common = ["--endpoint", endpoint.as_str(), "--output", "json"];
+
+        let submit = [
+            &[
+                "submit", "--data", &scene, "--style", &style, "--preset", "tiny",
+            ][..],
+            &["--set", "nerf_pretrain.steps=10", "--blend", "0:1"],
+            &common,
+        ]
+        .concat();
+        let submitted: Value = serde_json::from_str(&run_line(&submit).await.unwrap()).unwrap();
+        assert_eq!(submitted["created"], true);
+        assert_eq!(submitted["job"]["state"], "queued");
+        assert_eq!(
+            submitted["job"]["config_overrides"]["nerf_pretrain.steps"],
+            10
+        );
+        assert_eq!(submitted["uploads"][0]["kind"], "dataset_archive");
+        let job = submitted["job"]["id"].as_str().unwrap().to_string();
+
+        let status: Value = serde_json::from_str(
+            &run_line(&[&["status", &job][..], &common].concat())
+                .await
+                .unwrap(),
+        )
+        .unwrap();
+        assert_eq!(status["tasks"][0]["stage"], "nerf_pretrain");
+        assert_eq!(status["tasks"][0]["state"], "ready");
+        let list: Value =
+            serde_json::from_str(&run_line(&[&["list"][..], &common].concat()).await.unwrap())
+                .unwrap();
+        assert_eq!(list[0]["id"], job.as_str());
+        let cancelled: Value = serde_json::from_str(
+            &run_line(&[&["cancel", &job][..], &common].concat())
+                .await
+                .unwrap(),
+        )
+        .unwrap();
+        assert_eq!(cancelled["state"], "cancelled");
+        let events = run_line(&[&["events", &job][..], &common].concat())
+            .await
+            .unwrap();
+        let kinds: Vec<String> = events
+            .lines()
+            .map(|l| {
+                serde_json::from_str::<Value>(l).unwrap()["kind"]
+                    .as_str()
+                    .unwrap()
+                    .into()
+            })
+            .collect();
+        assert_eq!(kinds.first().map(String::as_str), Some("job_created"));
+        assert_eq!(kinds.last().map(String::as_str), Some("job_state"));
+        // `watch` of a cancelled job fails (exit status 1) after printing its events.
+        let err = run_line(&[&["watch", &job][..], &common].concat())
+            .await
+            .unwrap_err();
+        assert!(err.to_string().contains("cancelled"), "{err}");
+        let fetched: Value = serde_json::from_str(
+            &run_line(
+                &[
+                    &["fetch", &job, "--inputs", "-o"][..],
+                    &[dir.path().join("out").to_str().unwrap()],
+                    &common,
+                ]
+                .concat(),
+            )
+            .await
+            .unwrap(),
+        )
+        .unwrap();
+        assert_eq!(fetched["files"].as_array().unwrap().len(), 2);
+        let err = run_line(&[&["status", "j-nope"][..], &common].concat())
+            .await
+            .unwrap_err();
+        assert!(err.to_string().contains("not found"), "{err}");
+
+        coordinator.shutdown().await.unwrap();
+    }
+}

@@ -1,0 +1,165 @@
+//! Unpacking a job's dataset archive (an uncompressed tar, validated by the coordinator at
+//! submission) into a scratch folder without trusting it again: only regular files and
+//! folders, every path kept inside the destination, sizes and member count bounded. Then
+//! finding the scene in it (at the root or in one folder).
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use stylenerf_engine::scene::SceneFormat;
+
+use crate::error::TaskError;
+
+/// Bounds on what an archive may unpack to.
+#[derive(Debug, Clone, Copy)]
+pub struct ArchiveLimits {
+    pub max_members: u64,
+    pub max_total_bytes: u64,
+}
+
+impl Default for ArchiveLimits {
+    /// The coordinator's default submission limits.
+    fn default() -> Self {
+        Self {
+            max_members: 100_000,
+            max_total_bytes: 2 << 30,
+        }
+    }
+}
+
+/// Unpacks the tar archive read from `reader` into `dest`. `name` names the archive in errors.
+pub fn unpack(
+    reader: impl Read,
+    dest: &Path,
+    name: &str,
+    limits: ArchiveLimits,
+) -> Result<(), TaskError> {
+    let bad = |why: String| TaskError::permanent(format!("dataset archive {name}: {why}"));
+    std::fs::create_dir_all(dest)
+        .map_err(|e| TaskError::retryable(format!("{}: {e}", dest.display())))?;
+    let mut archive = tar::Archive::new(reader);
+    archive.set_preserve_permissions(false);
+    archive.set_unpack_xattrs(false);
+    let entries = archive
+        .entries()
+        .map_err(|e| bad(format!("not a tar archive: {e}")))?;
+    let (mut count, mut total) = (0u64, 0u64);
+    for entry in entries {
+        let mut entry = entry.map_err(|e| bad(format!("corrupt tar archive: {e}")))?;
+        let kind = entry.header().entry_type();
+        if kind.is_pax_global_extensions() || kind.is_pax_local_extensions() {
+            continue;
+        }
+        let path = String::from_utf8_lossy(&entry.path_bytes()).into_owned();
+        if !(kind.is_file() || kind.is_dir() || kind.is_contiguous()) {
+            return Err(bad(format!(
+                "member {path:?}: only regular files and folders are allowed"
+            )));
+        }
+        count += 1;
+        total += entry.size();
+        if count > limits.max_members || total > limits.max_total_bytes {
+            return Err(bad(format!(
+                "more than {} members or {} bytes",
+                limits.max_members, limits.max_total_bytes
+            )));
+        }
+        // `unpack_in` refuses absolute paths and `..`; it returns false for those.
+        let inside = entry
+            .unpack_in(dest)
+            .map_err(|e| TaskError::retryable(format!("unpacking member {path:?}: {e}")))?;
+        if !inside {
+            return Err(bad(format!("member {path:?} points outside the archive")));
+        }
+    }
+    Ok(())
+}
+
+/// The folder holding the scene: `dir` itself or the shallowest folder below it (two levels
+/// at most) with a scene file.
+pub fn scene_root(dir: &Path) -> Result<PathBuf, TaskError> {
+    let is_scene = |d: &Path| {
+        SceneFormat::ALL
+            .iter()
+            .any(|f| d.join(f.marker()).is_file())
+    };
+    let mut level = vec![dir.to_path_buf()];
+    for _ in 0..3 {
+        let mut found: Vec<&PathBuf> = level.iter().filter(|d| is_scene(d)).collect();
+        found.sort();
+        if let Some(d) = found.first() {
+            return Ok((*d).clone());
+        }
+        level = level
+            .iter()
+            .filter_map(|d| std::fs::read_dir(d).ok())
+            .flatten()
+            .filter_map(|e| e.ok())
+            .map(|e| e.path())
+            .filter(|p| p.is_dir())
+            .collect();
+    }
+    Err(TaskError::permanent(
+        "dataset archive: no transforms.json (nerfstudio), transforms_train.json (Blender) or \
+         poses_bounds.npy (LLFF) at its root or in a folder",
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tar_with(entries: &[(&str, tar::EntryType, &[u8])]) -> Vec<u8> {
+        let mut builder = tar::Builder::new(Vec::new());
+        for (path, kind, data) in entries {
+            let mut header = tar::Header::new_gnu();
+            header.set_entry_type(*kind);
+            header.set_size(data.len() as u64);
+            header.set_mode(0o644);
+            // Bypass `set_path`'s own checks to build hostile archives.
+            let name = &mut header.as_gnu_mut().unwrap().name;
+            name[..path.len()].copy_from_slice(path.as_bytes());
+            header.set_cksum();
+            builder.append(&header, *data).unwrap();
+        }
+        builder.into_inner().unwrap()
+    }
+
+    #[test]
+    fn unpacks_and_finds_the_scene_folder() {
+        let dir = tempfile_dir("ok");
+        let tar = tar_with(&[
+            ("lego/transforms.json", tar::EntryType::Regular, b"{}"),
+            ("lego/images/a.png", tar::EntryType::Regular, b"x"),
+        ]);
+        unpack(&tar[..], &dir, "scene.tar", ArchiveLimits::default()).unwrap();
+        assert_eq!(scene_root(&dir).unwrap(), dir.join("lego"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn refuses_links_escapes_and_missing_scenes() {
+        let dir = tempfile_dir("bad");
+        let link = tar_with(&[("evil", tar::EntryType::Symlink, b"")]);
+        let err = unpack(&link[..], &dir, "s.tar", ArchiveLimits::default()).unwrap_err();
+        assert!(
+            !err.retryable && err.reason.contains("regular files"),
+            "{err}"
+        );
+        let escape = tar_with(&[("../evil", tar::EntryType::Regular, b"x")]);
+        let err = unpack(&escape[..], &dir, "s.tar", ArchiveLimits::default()).unwrap_err();
+        assert!(!err.retryable && err.reason.contains("outside"), "{err}");
+        assert!(!dir.parent().unwrap().join("evil").exists());
+        let err = scene_root(&dir).unwrap_err();
+        assert!(err.reason.contains("no transforms.json"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    fn tempfile_dir(tag: &str) -> PathBuf {
+        let dir =
+            std::env::temp_dir().join(format!("stylenerf-archive-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+}

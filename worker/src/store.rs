@@ -1,0 +1,279 @@
+//! Object access through the coordinator's `ArtifactService`, which works for every deployment
+//! (the worker needs no store credentials): list a prefix, download an object to a file (the
+//! SHA-256 checked, written under a temporary name and renamed), upload a file or a whole
+//! folder in 1 MiB chunks with its size and SHA-256 declared up front.
+
+use std::path::{Component, Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use futures::StreamExt;
+use sha2::{Digest, Sha256};
+use stylenerf_proto::v1 as pb;
+use stylenerf_proto::v1::artifact_service_client::ArtifactServiceClient;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+use crate::connection::Authed;
+use crate::error::TaskError;
+
+/// Bytes per upload message (the coordinator's limit).
+const CHUNK: usize = 1 << 20;
+
+/// The coordinator's object store, as seen by a worker.
+#[derive(Clone)]
+pub struct Store {
+    client: ArtifactServiceClient<Authed>,
+}
+
+/// Store failures are retryable: the inputs were validated at submission, so a failing
+/// transfer is a network, storage or local-disk problem.
+fn transfer_error(what: String) -> impl FnOnce(tonic::Status) -> TaskError {
+    move |s| TaskError::retryable(format!("{what}: {:?}: {}", s.code(), s.message()))
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> TaskError + '_ {
+    move |e| TaskError::retryable(format!("{}: {e}", path.display()))
+}
+
+/// `rel` as a relative path with only normal components (no `..`, no root), if it is one.
+pub fn safe_relative(rel: &str) -> Option<PathBuf> {
+    let path = Path::new(rel);
+    let ok = !rel.is_empty()
+        && !rel.contains('\\')
+        && path.components().all(|c| matches!(c, Component::Normal(_)));
+    ok.then(|| path.to_path_buf())
+}
+
+impl Store {
+    pub fn new(client: ArtifactServiceClient<Authed>) -> Self {
+        Self { client }
+    }
+
+    /// Objects under `prefix`, sorted by key.
+    pub async fn list(&self, prefix: &str) -> Result<Vec<pb::Artifact>, TaskError> {
+        Ok(self
+            .client
+            .clone()
+            .list_objects(pb::ListObjectsRequest {
+                prefix: prefix.to_string(),
+            })
+            .await
+            .map_err(transfer_error(format!("listing {prefix}")))?
+            .into_inner()
+            .objects)
+    }
+
+    /// Downloads `key` to `dest`, checking the SHA-256 when `sha256` is not empty.
+    pub async fn download(&self, key: &str, sha256: &str, dest: &Path) -> Result<(), TaskError> {
+        if let Some(dir) = dest.parent() {
+            tokio::fs::create_dir_all(dir)
+                .await
+                .map_err(io_error(dir))?;
+        }
+        let tmp = dest.with_extension("part");
+        let mut stream = self
+            .client
+            .clone()
+            .get_object(pb::GetObjectRequest {
+                key: key.to_string(),
+                offset: 0,
+            })
+            .await
+            .map_err(transfer_error(format!("downloading {key}")))?
+            .into_inner();
+        let mut file = tokio::fs::File::create(&tmp)
+            .await
+            .map_err(io_error(&tmp))?;
+        let mut hasher = Sha256::new();
+        while let Some(chunk) = stream.next().await {
+            let chunk = chunk.map_err(transfer_error(format!("downloading {key}")))?;
+            hasher.update(&chunk.data);
+            file.write_all(&chunk.data).await.map_err(io_error(&tmp))?;
+        }
+        file.flush().await.map_err(io_error(&tmp))?;
+        drop(file);
+        let actual = hex::encode(hasher.finalize());
+        if !sha256.is_empty() && actual != sha256 {
+            let _ = tokio::fs::remove_file(&tmp).await;
+            return Err(TaskError::retryable(format!(
+                "downloading {key}: SHA-256 {actual} does not match the manifest's {sha256}"
+            )));
+        }
+        tokio::fs::rename(&tmp, dest).await.map_err(io_error(dest))
+    }
+
+    /// Downloads every object under `prefix` into `dir`, at its path relative to the prefix.
+    pub async fn download_all(
+        &self,
+        objects: &[pb::Artifact],
+        prefix: &str,
+        dir: &Path,
+    ) -> Result<(), TaskError> {
+        for object in objects {
+            let rel = object
+                .key
+                .strip_prefix(prefix)
+                .and_then(safe_relative)
+                .ok_or_else(|| {
+                    TaskError::permanent(format!(
+                        "object {} is not a plain path under {prefix}",
+                        object.key
+                    ))
+                })?;
+            self.download(&object.key, &object.sha256, &dir.join(rel))
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// Uploads the file at `path` as `key`.
+    pub async fn upload(&self, key: &str, path: &Path) -> Result<pb::Artifact, TaskError> {
+        let (size, sha256) = hash_file(path).await?;
+        let header = pb::PutObjectChunk {
+            part: Some(pb::put_object_chunk::Part::Header(pb::PutObjectHeader {
+                key: key.to_string(),
+                size,
+                sha256,
+            })),
+        };
+        let file = tokio::fs::File::open(path).await.map_err(io_error(path))?;
+        // A read error ends the stream early; it is reported instead of the coordinator's
+        // "stream ended" complaint.
+        let read_error: Arc<Mutex<Option<std::io::Error>>> = Arc::default();
+        let slot = read_error.clone();
+        let data = futures::stream::unfold(Some(file), move |file| {
+            let slot = slot.clone();
+            async move {
+                let mut file = file?;
+                let mut buf = vec![0u8; CHUNK];
+                let mut filled = 0;
+                while filled < CHUNK {
+                    match file.read(&mut buf[filled..]).await {
+                        Ok(0) => break,
+                        Ok(n) => filled += n,
+                        Err(e) => {
+                            *slot.lock().expect("read-error slot") = Some(e);
+                            return None;
+                        }
+                    }
+                }
+                if filled == 0 {
+                    return None;
+                }
+                buf.truncate(filled);
+                let chunk = pb::PutObjectChunk {
+                    part: Some(pb::put_object_chunk::Part::Data(buf)),
+                };
+                Some((chunk, Some(file)))
+            }
+        });
+        let result = self
+            .client
+            .clone()
+            .put_object(futures::stream::iter([header]).chain(data))
+            .await;
+        if let Some(e) = read_error.lock().expect("read-error slot").take() {
+            return Err(io_error(path)(e));
+        }
+        Ok(result
+            .map_err(transfer_error(format!("uploading {key}")))?
+            .into_inner())
+    }
+
+    /// Uploads every file under `dir` (except hidden ones and those `skip` rejects, given their
+    /// `/`-separated relative path) to `prefix` + relative path, in sorted order.
+    pub async fn upload_dir(
+        &self,
+        dir: &Path,
+        prefix: &str,
+        skip: impl Fn(&str) -> bool,
+    ) -> Result<Vec<pb::Artifact>, TaskError> {
+        let mut artifacts = Vec::new();
+        for rel in files_under(dir)? {
+            if skip(&rel) {
+                continue;
+            }
+            artifacts.push(
+                self.upload(&format!("{prefix}{rel}"), &dir.join(&rel))
+                    .await?,
+            );
+        }
+        Ok(artifacts)
+    }
+}
+
+/// Size and lower-case hex SHA-256 of a file.
+async fn hash_file(path: &Path) -> Result<(u64, String), TaskError> {
+    let mut file = tokio::fs::File::open(path).await.map_err(io_error(path))?;
+    let mut hasher = Sha256::new();
+    let mut buf = vec![0u8; CHUNK];
+    let mut size = 0u64;
+    loop {
+        let n = file.read(&mut buf).await.map_err(io_error(path))?;
+        if n == 0 {
+            break;
+        }
+        size += n as u64;
+        hasher.update(&buf[..n]);
+    }
+    Ok((size, hex::encode(hasher.finalize())))
+}
+
+/// `/`-separated paths of the regular files under `dir` (recursively), sorted, leaving out
+/// hidden files and folders (temporary files of atomic writes start with `.`).
+pub fn files_under(dir: &Path) -> Result<Vec<String>, TaskError> {
+    fn walk(dir: &Path, rel: &str, out: &mut Vec<String>) -> Result<(), TaskError> {
+        let entries = match std::fs::read_dir(dir) {
+            Ok(e) => e,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+            Err(e) => return Err(io_error(dir)(e)),
+        };
+        for entry in entries {
+            let entry = entry.map_err(io_error(dir))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if name.starts_with('.') {
+                continue;
+            }
+            let path = rel.to_string() + &name;
+            let kind = entry.file_type().map_err(io_error(&entry.path()))?;
+            if kind.is_dir() {
+                walk(&entry.path(), &format!("{path}/"), out)?;
+            } else if kind.is_file() {
+                out.push(path);
+            }
+        }
+        Ok(())
+    }
+    let mut out = Vec::new();
+    walk(dir, "", &mut out)?;
+    out.sort();
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn relative_paths_stay_inside() {
+        assert_eq!(safe_relative("a/b.png"), Some(PathBuf::from("a/b.png")));
+        assert_eq!(safe_relative("../x"), None);
+        assert_eq!(safe_relative("/etc/passwd"), None);
+        assert_eq!(safe_relative("a\\b"), None);
+        assert_eq!(safe_relative(""), None);
+    }
+
+    #[test]
+    fn lists_files_sorted_without_hidden_ones() {
+        let dir = std::env::temp_dir().join(format!("stylenerf-files-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("ckpt")).unwrap();
+        for f in ["b.json", "a.bin", "ckpt/step-1.json", ".tmp", "ckpt/.x.tmp"] {
+            std::fs::write(dir.join(f), b"x").unwrap();
+        }
+        assert_eq!(
+            files_under(&dir).unwrap(),
+            ["a.bin", "b.json", "ckpt/step-1.json"]
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

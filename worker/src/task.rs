@@ -1,0 +1,574 @@
+//! One leased task from start to end: a scratch folder, the heartbeat loop (progress, lease
+//! extension, cancellation), checkpoint restore before the stage and checkpoint upload while it
+//! runs, the stage itself on a blocking thread, then the outputs and `manifest.json` (last)
+//! uploaded and `CompleteTask`, or `FailTask` with the reason.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use candle_core::Device;
+use stylenerf_engine::checkpoint::CheckpointDir;
+use stylenerf_engine::stages::{Outcome, StageControl};
+use stylenerf_engine::EngineError;
+use stylenerf_proto::v1 as pb;
+use tokio::sync::broadcast;
+
+use crate::archive::{self, ArchiveLimits};
+use crate::connection::Clients;
+use crate::error::TaskError;
+use crate::progress::ProgressTracker;
+use crate::stages;
+use crate::store::Store;
+use crate::task_config::TaskConfig;
+use crate::worker::WorkerEvent;
+
+/// Named final metrics of a stage, sent with `CompleteTask`.
+pub type Metrics = BTreeMap<String, f64>;
+
+/// Settings every task of a worker shares.
+#[derive(Debug, Clone)]
+pub struct RunSettings {
+    pub worker_id: String,
+    pub device: Device,
+    /// VGG encoder weights for the 2D stages; `None` = the bundled VGG-16.
+    pub encoder: Option<PathBuf>,
+    pub checkpoint_every_steps: u64,
+    pub checkpoint_every: Option<Duration>,
+    /// How often new checkpoints are looked for and uploaded.
+    pub checkpoint_upload_every: Duration,
+    pub scratch_dir: PathBuf,
+    pub keep_scratch: bool,
+}
+
+/// Why a task was stopped before its stage finished.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopReason {
+    /// The worker is shutting down: checkpoint, upload, release the lease.
+    Shutdown,
+    /// The heartbeat reply said the job was cancelled.
+    Cancelled,
+    /// The coordinator no longer recognises the lease (expired, leased again).
+    LeaseLost,
+}
+
+/// Stops a running task: sets the stage's cancellation flag and records why (first reason
+/// wins).
+#[derive(Debug)]
+pub struct TaskStop {
+    cancel: Arc<AtomicBool>,
+    reason: Mutex<Option<StopReason>>,
+}
+
+impl TaskStop {
+    pub fn stop(&self, reason: StopReason) {
+        self.reason
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get_or_insert(reason);
+        self.cancel.store(true, Ordering::Relaxed);
+    }
+
+    pub fn reason(&self) -> Option<StopReason> {
+        *self.reason.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// How a task ended, as reported in [`crate::WorkerEvent::TaskFinished`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum TaskResult {
+    /// `CompleteTask` with this manifest (including `manifest.json`).
+    Completed {
+        outputs: Vec<pb::Artifact>,
+        metrics: Metrics,
+    },
+    /// `FailTask` with this reason.
+    Failed { reason: String, retryable: bool },
+    /// Stopped on the coordinator's cancellation; nothing reported.
+    Cancelled,
+    /// Checkpointed and released on shutdown (`FailTask`, retryable, "worker shutting down").
+    Released { checkpoint_step: Option<u64> },
+    /// The lease was lost; nothing reported.
+    LeaseLost,
+}
+
+/// Everything a stage function needs: the assignment, its parsed config, the store, the local
+/// folders and the stage control.
+pub struct TaskContext {
+    pub assignment: pb::TaskAssignment,
+    pub config: TaskConfig,
+    pub store: Store,
+    pub settings: Arc<RunSettings>,
+    pub control: StageControl,
+    pub tracker: Arc<ProgressTracker>,
+    /// `<scratch>/inputs`: downloaded inputs.
+    pub inputs: PathBuf,
+    /// `<scratch>/out`: the stage's output folder (checkpoints in `out/ckpt`).
+    pub out: PathBuf,
+}
+
+impl TaskContext {
+    /// Downloads and unpacks the dataset archive; returns the scene folder.
+    pub async fn dataset(&self) -> Result<PathBuf, TaskError> {
+        let key = &self.assignment.dataset_key;
+        self.tracker.set_message("downloading the dataset");
+        let tar = self.inputs.join("scene.tar");
+        self.store.download(key, "", &tar).await?;
+        let dest = self.inputs.join("dataset");
+        let name = key.clone();
+        tokio::task::spawn_blocking(move || -> Result<PathBuf, TaskError> {
+            let file = std::fs::File::open(&tar)
+                .map_err(|e| TaskError::retryable(format!("{}: {e}", tar.display())))?;
+            archive::unpack(
+                std::io::BufReader::new(file),
+                &dest,
+                &name,
+                ArchiveLimits::default(),
+            )?;
+            let _ = std::fs::remove_file(&tar);
+            archive::scene_root(&dest)
+        })
+        .await
+        .map_err(|e| TaskError::retryable(format!("unpacking the dataset: {e}")))?
+    }
+
+    /// Downloads the outputs of the upstream `stage` into `inputs/<stage>/`; returns that
+    /// folder.
+    pub async fn upstream(&self, stage: pb::Stage) -> Result<PathBuf, TaskError> {
+        let name = stages::stage_name(stage);
+        let input = self
+            .assignment
+            .inputs
+            .iter()
+            .find(|i| i.stage == stage as i32)
+            .ok_or_else(|| {
+                TaskError::permanent(format!(
+                    "the assignment lists no outputs of the upstream stage {name}"
+                ))
+            })?;
+        self.tracker
+            .set_message(format!("downloading the outputs of {name}"));
+        let dir = self.inputs.join(name);
+        self.store
+            .download_all(&input.artifacts, &input.prefix, &dir)
+            .await?;
+        Ok(dir)
+    }
+
+    /// Downloads the style images, in style order; returns their paths.
+    pub async fn styles(&self) -> Result<Vec<PathBuf>, TaskError> {
+        self.tracker.set_message("downloading the style images");
+        let mut paths = Vec::new();
+        for (i, key) in self.assignment.style_keys.iter().enumerate() {
+            let ext = key.rsplit_once('.').map_or("img", |(_, e)| e);
+            let path = self.inputs.join("styles").join(format!("{i}.{ext}"));
+            self.store.download(key, "", &path).await?;
+            paths.push(path);
+        }
+        Ok(paths)
+    }
+
+    /// Runs `f(control, device, out)` (the engine call) on a blocking thread. A cancelled
+    /// stage comes back as `Outcome::Stopped` at its last checkpoint.
+    pub async fn run_engine<R: Send + 'static>(
+        &self,
+        f: impl FnOnce(&StageControl, &Device, &Path) -> Result<Outcome<R>, EngineError>
+            + Send
+            + 'static,
+    ) -> Result<Outcome<R>, TaskError> {
+        if self.control.is_cancelled() {
+            return Ok(Outcome::Stopped {
+                step: self.tracker.resumed_from(),
+            });
+        }
+        let (control, device, out) = (
+            self.control.clone(),
+            self.settings.device.clone(),
+            self.out.clone(),
+        );
+        let ckpt = self.out.join("ckpt");
+        let joined = tokio::task::spawn_blocking(move || f(&control, &device, &out)).await;
+        match joined {
+            Ok(Ok(outcome)) => Ok(outcome),
+            Ok(Err(EngineError::Cancelled)) => Ok(Outcome::Stopped {
+                step: latest_checkpoint(&ckpt).unwrap_or(0),
+            }),
+            Ok(Err(e)) => Err(e.into()),
+            Err(e) => Err(TaskError::retryable(format!("the stage panicked: {e}"))),
+        }
+    }
+}
+
+/// The newest complete local checkpoint step in `dir`.
+fn latest_checkpoint(dir: &Path) -> Option<u64> {
+    CheckpointDir::new(dir, 1)
+        .steps()
+        .ok()
+        .and_then(|s| s.last().copied())
+}
+
+fn checkpoint_files(step: u64) -> [String; 2] {
+    // Tensors first, metadata last: the engine treats a checkpoint as complete once its JSON
+    // exists, so a reader never sees a JSON without its tensors.
+    [
+        format!("step-{step:08}.safetensors"),
+        format!("step-{step:08}.json"),
+    ]
+}
+
+/// Uploads the newest local checkpoint if it is newer than `uploaded`; returns its step.
+async fn upload_checkpoint(
+    store: &Store,
+    dir: &Path,
+    prefix: &str,
+    uploaded: Option<u64>,
+) -> Result<Option<u64>, TaskError> {
+    let Some(step) = latest_checkpoint(dir) else {
+        return Ok(uploaded);
+    };
+    if uploaded.is_some_and(|u| u >= step) {
+        return Ok(uploaded);
+    }
+    for file in checkpoint_files(step) {
+        store
+            .upload(&format!("{prefix}{file}"), &dir.join(&file))
+            .await?;
+    }
+    tracing::info!(step, prefix, "checkpoint uploaded");
+    Ok(Some(step))
+}
+
+/// Downloads the newest complete checkpoint under `prefix` into `dir`; returns its step.
+async fn restore_checkpoint(
+    store: &Store,
+    prefix: &str,
+    dir: &Path,
+) -> Result<Option<u64>, TaskError> {
+    let objects = store.list(prefix).await?;
+    let names: std::collections::HashMap<&str, &pb::Artifact> = objects
+        .iter()
+        .filter_map(|o| o.key.strip_prefix(prefix).map(|n| (n, o)))
+        .collect();
+    let newest = names
+        .keys()
+        .filter_map(|n| n.strip_prefix("step-")?.strip_suffix(".json")?.parse().ok())
+        .filter(|&step: &u64| {
+            checkpoint_files(step)
+                .iter()
+                .all(|f| names.contains_key(f.as_str()))
+        })
+        .max();
+    let Some(step) = newest else {
+        return Ok(None);
+    };
+    for file in checkpoint_files(step) {
+        let object = names[file.as_str()];
+        store
+            .download(&object.key, &object.sha256, &dir.join(&file))
+            .await?;
+    }
+    Ok(Some(step))
+}
+
+/// Sends heartbeats every `interval` until aborted; stops the task on cancellation or a lost
+/// lease.
+async fn heartbeat_loop(
+    mut clients: Clients,
+    worker_id: String,
+    task_id: u64,
+    fencing_token: u64,
+    interval: Duration,
+    tracker: Arc<ProgressTracker>,
+    stop: Arc<TaskStop>,
+) {
+    let mut tick = tokio::time::interval(interval);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        let request = pb::HeartbeatRequest {
+            worker_id: worker_id.clone(),
+            task_id,
+            fencing_token,
+            progress: Some(tracker.snapshot()),
+        };
+        match clients.workers.heartbeat(request).await {
+            Ok(reply) if reply.get_ref().cancel => {
+                tracing::info!(task_id, "the job was cancelled: stopping the stage");
+                stop.stop(StopReason::Cancelled);
+            }
+            Ok(_) => {}
+            Err(s)
+                if matches!(
+                    s.code(),
+                    tonic::Code::FailedPrecondition | tonic::Code::NotFound
+                ) =>
+            {
+                tracing::warn!(
+                    task_id,
+                    reason = s.message(),
+                    "lease lost: stopping the stage"
+                );
+                stop.stop(StopReason::LeaseLost);
+            }
+            Err(s) => tracing::warn!(task_id, error = %s, "heartbeat failed; retrying"),
+        }
+    }
+}
+
+/// Prepares one leased task: returns its stop handle and the future that runs it to its end
+/// and reports it. The future never fails: every problem becomes a [`TaskResult`].
+pub fn start_task(
+    clients: Clients,
+    settings: Arc<RunSettings>,
+    assignment: pb::TaskAssignment,
+    events: broadcast::Sender<WorkerEvent>,
+) -> (Arc<TaskStop>, impl std::future::Future<Output = TaskResult>) {
+    let stage = pb::Stage::try_from(assignment.stage).unwrap_or(pb::Stage::Unspecified);
+    let tracker = Arc::new(ProgressTracker::new(stages::stage_name(stage)));
+    let sink = tracker.clone();
+    let mut control = StageControl::default().with_sink(move |p| sink.update(p));
+    control.checkpoint_every_steps = settings.checkpoint_every_steps;
+    control.checkpoint_every = settings.checkpoint_every;
+    let stop = Arc::new(TaskStop {
+        cancel: control.cancel_flag(),
+        reason: Mutex::new(None),
+    });
+    let run = run_task(
+        clients,
+        settings,
+        assignment,
+        events,
+        control,
+        tracker,
+        stop.clone(),
+    );
+    (stop, run)
+}
+
+async fn run_task(
+    clients: Clients,
+    settings: Arc<RunSettings>,
+    assignment: pb::TaskAssignment,
+    events: broadcast::Sender<WorkerEvent>,
+    control: StageControl,
+    tracker: Arc<ProgressTracker>,
+    stop: Arc<TaskStop>,
+) -> TaskResult {
+    let scratch = settings
+        .scratch_dir
+        .join(format!("task-{}", assignment.task_id));
+    let interval = Duration::from_millis(match assignment.heartbeat_interval_ms {
+        0 => 5000,
+        ms => ms,
+    });
+    let heartbeat = tokio::spawn(heartbeat_loop(
+        clients.clone(),
+        settings.worker_id.clone(),
+        assignment.task_id,
+        assignment.fencing_token,
+        interval,
+        tracker.clone(),
+        stop.clone(),
+    ));
+    let (task_id, fencing_token) = (assignment.task_id, assignment.fencing_token);
+    let prefix = assignment.checkpoint_prefix.clone();
+    let result = async {
+        let _ = tokio::fs::remove_dir_all(&scratch).await;
+        let ctx = TaskContext {
+            config: TaskConfig::parse(&assignment.config_json)?,
+            store: Store::new(clients.artifacts.clone()),
+            settings: settings.clone(),
+            control,
+            tracker: tracker.clone(),
+            inputs: scratch.join("inputs"),
+            out: scratch.join("out"),
+            assignment,
+        };
+        execute(&ctx, &events).await
+    }
+    .await;
+    let store = Store::new(clients.artifacts.clone());
+    let ckpt_dir = scratch.join("out").join("ckpt");
+    let report = match (stop.reason(), result) {
+        (Some(StopReason::LeaseLost), _) => TaskResult::LeaseLost,
+        (Some(StopReason::Cancelled), _) => TaskResult::Cancelled,
+        (_, Ok(Executed::Done(outputs, metrics))) => {
+            let request = pb::CompleteTaskRequest {
+                worker_id: settings.worker_id.clone(),
+                task_id,
+                fencing_token,
+                outputs: outputs.clone(),
+                metrics: metrics.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+            };
+            match clients.workers.clone().complete_task(request).await {
+                Ok(_) => TaskResult::Completed { outputs, metrics },
+                Err(s) => TaskResult::Failed {
+                    reason: format!("CompleteTask was refused: {}", s.message()),
+                    retryable: true,
+                },
+            }
+        }
+        (reason, Ok(Executed::Stopped)) | (reason @ Some(StopReason::Shutdown), Err(_)) => {
+            // Interrupted by a shutdown (or a failure raced with it): keep the last checkpoint
+            // and give the task back.
+            let checkpoint_step = match upload_checkpoint(&store, &ckpt_dir, &prefix, None).await {
+                Ok(step) => step,
+                Err(e) => {
+                    tracing::warn!(task_id, error = %e, "uploading the final checkpoint failed");
+                    None
+                }
+            };
+            let reason = match reason {
+                Some(StopReason::Shutdown) => "worker shutting down".to_string(),
+                _ => "the stage stopped before finishing".to_string(),
+            };
+            fail(&clients, &settings, task_id, fencing_token, &reason, true).await;
+            TaskResult::Released { checkpoint_step }
+        }
+        (None, Err(e)) => {
+            fail(
+                &clients,
+                &settings,
+                task_id,
+                fencing_token,
+                &e.reason,
+                e.retryable,
+            )
+            .await;
+            TaskResult::Failed {
+                reason: e.reason,
+                retryable: e.retryable,
+            }
+        }
+    };
+    heartbeat.abort();
+    if !settings.keep_scratch {
+        let _ = tokio::fs::remove_dir_all(&scratch).await;
+    }
+    report
+}
+
+async fn fail(
+    clients: &Clients,
+    settings: &RunSettings,
+    task_id: u64,
+    fencing_token: u64,
+    reason: &str,
+    retryable: bool,
+) {
+    let request = pb::FailTaskRequest {
+        worker_id: settings.worker_id.clone(),
+        task_id,
+        fencing_token,
+        reason: reason.to_string(),
+        retryable,
+    };
+    if let Err(s) = clients.workers.clone().fail_task(request).await {
+        tracing::warn!(task_id, error = %s, "FailTask was refused");
+    }
+}
+
+/// What [`execute`] achieved.
+enum Executed {
+    /// Outputs uploaded (manifest last).
+    Done(Vec<pb::Artifact>, Metrics),
+    /// The stage stopped early (checkpointed).
+    Stopped,
+}
+
+/// Restores the checkpoint, runs the stage while uploading new checkpoints, and uploads the
+/// outputs.
+async fn execute(
+    ctx: &TaskContext,
+    events: &broadcast::Sender<WorkerEvent>,
+) -> Result<Executed, TaskError> {
+    let a = &ctx.assignment;
+    let ckpt_dir = ctx.out.join("ckpt");
+    for dir in [&ctx.inputs, &ckpt_dir] {
+        tokio::fs::create_dir_all(dir)
+            .await
+            .map_err(|e| TaskError::retryable(format!("{}: {e}", dir.display())))?;
+    }
+    ctx.tracker.set_message("looking for a checkpoint");
+    let restored = restore_checkpoint(&ctx.store, &a.checkpoint_prefix, &ckpt_dir).await?;
+    if let Some(step) = restored {
+        tracing::info!(
+            task_id = a.task_id,
+            attempt = a.attempt,
+            step,
+            "resuming from checkpoint step {step}"
+        );
+        ctx.tracker.set_resumed_from(step);
+    }
+    let _ = events.send(WorkerEvent::TaskStarted {
+        task_id: a.task_id,
+        job_id: a.job_id.clone(),
+        stage: pb::Stage::try_from(a.stage).unwrap_or_default(),
+        attempt: a.attempt,
+        resumed_from: restored.unwrap_or(0),
+    });
+
+    // Upload new checkpoints while the stage runs.
+    let uploader = {
+        let (store, dir, prefix) = (
+            ctx.store.clone(),
+            ckpt_dir.clone(),
+            a.checkpoint_prefix.clone(),
+        );
+        let every = ctx.settings.checkpoint_upload_every;
+        tokio::spawn(async move {
+            let mut uploaded = restored;
+            loop {
+                tokio::time::sleep(every).await;
+                match upload_checkpoint(&store, &dir, &prefix, uploaded).await {
+                    Ok(step) => uploaded = step,
+                    Err(e) => tracing::warn!(error = %e, "checkpoint upload failed; retrying"),
+                }
+            }
+        })
+    };
+    let outcome = stages::run_stage(ctx).await;
+    uploader.abort();
+    let metrics = match outcome? {
+        Outcome::Done(mut metrics) => {
+            metrics.insert("resumed_from".into(), restored.unwrap_or(0) as f64);
+            metrics
+        }
+        Outcome::Stopped { .. } => return Ok(Executed::Stopped),
+    };
+
+    ctx.tracker.set_message("uploading outputs");
+    let prefix = &a.output_prefix;
+    let mut outputs = ctx
+        .store
+        .upload_dir(&ctx.out, prefix, |rel| {
+            rel.starts_with("ckpt/") || rel == MANIFEST
+        })
+        .await?;
+    let manifest = serde_json::json!({
+        "task_id": a.task_id,
+        "job_id": a.job_id,
+        "stage": stages::stage_name(pb::Stage::try_from(a.stage).unwrap_or_default()),
+        "attempt": a.attempt,
+        "metrics": metrics,
+        "outputs": outputs.iter().map(|o| serde_json::json!({
+            "key": o.key, "size": o.size, "sha256": o.sha256,
+        })).collect::<Vec<_>>(),
+    });
+    let path = ctx.out.join(MANIFEST);
+    let bytes = serde_json::to_vec_pretty(&manifest).expect("JSON of plain values");
+    tokio::fs::write(&path, bytes)
+        .await
+        .map_err(|e| TaskError::retryable(format!("{}: {e}", path.display())))?;
+    outputs.push(
+        ctx.store
+            .upload(&format!("{prefix}{MANIFEST}"), &path)
+            .await?,
+    );
+    Ok(Executed::Done(outputs, metrics))
+}
+
+/// Written last under the output prefix: the list of outputs, their checksums and the metrics.
+pub const MANIFEST: &str = "manifest.json";

@@ -1,0 +1,158 @@
+//! A task's configuration (`TaskAssignment.config_json`): `{"stage", "preset", "overrides",
+//! "num_styles", ...}`, and each stage's engine configuration built from it.
+//!
+//! Overrides are addressed by stage: the job's `overrides` object holds, per stage, the dotted
+//! paths of that stage's settings, either flat or nested (both mean the same):
+//!
+//! ```json
+//! {"nerf_pretrain.steps": 2000, "nerf_pretrain": {"field.grid.levels": 12},
+//!  "decoder_pretrain": {"style_weight": 2.0}}
+//! ```
+//!
+//! Nested objects are flattened to dotted paths, so every leaf value sets one setting. The first
+//! path segment must be a stage name; a stage sees only its own overrides.
+
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+use serde_json::Value;
+use stylenerf_engine::preset::{apply_overrides, Preset};
+
+use crate::error::TaskError;
+
+/// Stage names, as used in `config_json` and override keys.
+pub const STAGE_NAMES: [&str; 5] = [
+    "nerf_pretrain",
+    "render_views",
+    "decoder_pretrain",
+    "mutual_learning",
+    "render_stylized",
+];
+
+/// The parsed `config_json` of a task.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TaskConfig {
+    pub preset: Preset,
+    /// Every override as (full dotted path, value), e.g. `("nerf_pretrain.steps", 2000)`.
+    pub overrides: Vec<(String, Value)>,
+    /// The whole document, for stage-specific keys (`camera_path`, `style_blend`, …).
+    pub raw: serde_json::Map<String, Value>,
+}
+
+impl TaskConfig {
+    /// Parses `config_json` (empty = `{}`, preset `quick`).
+    pub fn parse(config_json: &str) -> Result<Self, TaskError> {
+        let bad = |why: String| TaskError::permanent(format!("task config: {why}"));
+        let raw = if config_json.trim().is_empty() {
+            serde_json::Map::new()
+        } else {
+            match serde_json::from_str(config_json) {
+                Ok(Value::Object(map)) => map,
+                Ok(_) => return Err(bad("must be a JSON object".into())),
+                Err(e) => return Err(bad(format!("not valid JSON: {e}"))),
+            }
+        };
+        let preset = match raw.get("preset") {
+            None | Some(Value::Null) => Preset::default(),
+            Some(Value::String(s)) if s.is_empty() => Preset::default(),
+            Some(Value::String(s)) => s.parse()?,
+            Some(v) => return Err(bad(format!("`preset` must be a string, not {v}"))),
+        };
+        let mut overrides = Vec::new();
+        match raw.get("overrides") {
+            None | Some(Value::Null) => {}
+            Some(Value::Object(map)) => flatten("", map, &mut overrides),
+            Some(v) => return Err(bad(format!("`overrides` must be an object, not {v}"))),
+        }
+        for (key, _) in &overrides {
+            let stage = key.split('.').next().unwrap_or_default();
+            if !STAGE_NAMES.contains(&stage) || !key.contains('.') {
+                return Err(bad(format!(
+                    "override `{key}`: keys start with a stage name ({}), e.g. \
+                     `nerf_pretrain.steps`",
+                    STAGE_NAMES.join(", ")
+                )));
+            }
+        }
+        Ok(Self {
+            preset,
+            overrides,
+            raw,
+        })
+    }
+
+    /// The overrides of `stage`, with the stage prefix removed.
+    pub fn stage_overrides(&self, stage: &str) -> Vec<(String, Value)> {
+        self.overrides
+            .iter()
+            .filter_map(|(k, v)| {
+                k.strip_prefix(stage)
+                    .and_then(|rest| rest.strip_prefix('.'))
+                    .map(|rest| (rest.to_string(), v.clone()))
+            })
+            .collect()
+    }
+
+    /// `stage`'s configuration: its preset with its overrides applied. Errors name the full key.
+    pub fn stage_config<T: Serialize + DeserializeOwned>(
+        &self,
+        stage: &str,
+        preset: impl Fn(Preset) -> T,
+    ) -> Result<T, TaskError> {
+        apply_overrides(&preset(self.preset), &self.stage_overrides(stage))
+            .map_err(|e| TaskError::permanent(format!("overrides of {stage}: {e}")))
+    }
+}
+
+fn flatten(prefix: &str, map: &serde_json::Map<String, Value>, out: &mut Vec<(String, Value)>) {
+    for (k, v) in map {
+        let key = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match v {
+            Value::Object(inner) => flatten(&key, inner, out),
+            leaf => out.push((key, leaf.clone())),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use stylenerf_engine::stages::nerf_pretrain::NerfConfig;
+
+    #[test]
+    fn flat_and_nested_overrides_reach_their_stage() {
+        let c = TaskConfig::parse(
+            r#"{"stage": "nerf_pretrain", "preset": "tiny", "overrides": {
+                "nerf_pretrain.steps": 7, "nerf_pretrain": {"field": {"grid.levels": 3}},
+                "render_views": {"path_frames": 2}}}"#,
+        )
+        .unwrap();
+        assert_eq!(c.preset, Preset::Tiny);
+        let cfg: NerfConfig = c.stage_config("nerf_pretrain", NerfConfig::preset).unwrap();
+        assert_eq!((cfg.steps, cfg.field.grid.levels), (7, 3));
+        assert_eq!(c.stage_overrides("render_views").len(), 1);
+    }
+
+    #[test]
+    fn errors_name_the_key() {
+        let err = TaskConfig::parse(r#"{"overrides": {"steps": 3}}"#).unwrap_err();
+        assert!(
+            !err.retryable && err.reason.contains("override `steps`"),
+            "{err}"
+        );
+        let c = TaskConfig::parse(r#"{"overrides": {"nerf_pretrain.nope": 3}}"#).unwrap();
+        let err = c
+            .stage_config("nerf_pretrain", NerfConfig::preset)
+            .unwrap_err();
+        assert!(
+            err.reason.contains("nope") && err.reason.contains("no such setting"),
+            "{err}"
+        );
+        let err = TaskConfig::parse(r#"{"preset": "huge"}"#).unwrap_err();
+        assert!(err.reason.contains("huge"), "{err}");
+        assert_eq!(TaskConfig::parse("").unwrap().preset, Preset::Quick);
+    }
+}

@@ -1,0 +1,303 @@
+//! The worker loop: register, long-poll `LeaseTask` while fewer than `max_tasks` tasks run and
+//! their memory leaves room, run each task concurrently, and on shutdown stop every running
+//! task (each checkpoints, uploads and releases its lease) before returning.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use stylenerf_engine::device::{device_name, parse_device};
+use stylenerf_proto::v1 as pb;
+use tokio::sync::{broadcast, watch};
+use tokio::task::JoinSet;
+
+use crate::config::WorkerConfig;
+use crate::connection::Clients;
+use crate::task::{start_task, RunSettings, StopReason, TaskResult, TaskStop};
+
+/// What a worker did, for logs, tests and embedding programs.
+#[derive(Debug, Clone, PartialEq)]
+pub enum WorkerEvent {
+    /// A task's inputs and checkpoint are in place and its stage starts.
+    TaskStarted {
+        task_id: u64,
+        job_id: String,
+        stage: pb::Stage,
+        attempt: u32,
+        /// Checkpoint step the stage resumes from (0 = fresh start).
+        resumed_from: u64,
+    },
+    /// A task ended.
+    TaskFinished {
+        task_id: u64,
+        job_id: String,
+        stage: pb::Stage,
+        result: TaskResult,
+    },
+}
+
+/// Controls a running [`Worker`] from elsewhere: shut it down, watch its events.
+#[derive(Clone)]
+pub struct WorkerHandle {
+    shutdown: Arc<watch::Sender<bool>>,
+    events: broadcast::Sender<WorkerEvent>,
+}
+
+impl WorkerHandle {
+    /// Asks the worker to stop: running stages checkpoint, upload and release their leases;
+    /// [`Worker::run`] then returns.
+    pub fn shutdown(&self) {
+        let _ = self.shutdown.send(true);
+    }
+
+    /// Events from now on.
+    pub fn subscribe(&self) -> broadcast::Receiver<WorkerEvent> {
+        self.events.subscribe()
+    }
+}
+
+/// A registered worker, ready to [`run`](Worker::run).
+pub struct Worker {
+    clients: Clients,
+    config: WorkerConfig,
+    settings: Arc<RunSettings>,
+    capabilities: pb::Capabilities,
+    handle: WorkerHandle,
+}
+
+/// What [`Worker::run`] did.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct RunSummary {
+    pub completed: u64,
+    pub failed: u64,
+    pub cancelled: u64,
+    /// Given back on shutdown or after a lost lease.
+    pub released: u64,
+}
+
+impl Worker {
+    /// Opens the device, connects to the coordinator and registers.
+    pub async fn register(config: WorkerConfig) -> anyhow::Result<Self> {
+        let device = parse_device(&config.device).context("--device")?;
+        let clients = Clients::connect(
+            &config.endpoint,
+            config.token.as_deref(),
+            config.ca_cert.as_deref(),
+        )
+        .await?;
+        let capabilities = pb::Capabilities {
+            device: device_name(&device),
+            memory_bytes: config.memory_bytes,
+            labels: config.labels.clone(),
+            max_tasks: config.max_tasks.max(1) as u32,
+        };
+        let mut worker = Self {
+            clients,
+            settings: Arc::new(RunSettings {
+                worker_id: String::new(),
+                device,
+                encoder: config.encoder.clone(),
+                checkpoint_every_steps: config.checkpoint_every_steps,
+                checkpoint_every: config.checkpoint_every,
+                checkpoint_upload_every: config.checkpoint_upload_every,
+                // Set with the worker id by `register_again`.
+                scratch_dir: std::path::PathBuf::new(),
+                keep_scratch: config.keep_scratch,
+            }),
+            capabilities,
+            handle: WorkerHandle {
+                shutdown: Arc::new(watch::channel(false).0),
+                events: broadcast::channel(256).0,
+            },
+            config,
+        };
+        worker
+            .register_again(worker.config.worker_id.clone())
+            .await?;
+        Ok(worker)
+    }
+
+    /// Registers (again) under `id` (or a new id) and points the scratch folder at it.
+    async fn register_again(&mut self, id: Option<String>) -> anyhow::Result<()> {
+        let reply = self
+            .clients
+            .workers
+            .register_worker(pb::RegisterWorkerRequest {
+                name: self.config.name.clone(),
+                capabilities: Some(self.capabilities.clone()),
+                worker_id: id.unwrap_or_default(),
+            })
+            .await
+            .with_context(|| format!("registering with {}", self.config.endpoint))?
+            .into_inner();
+        let settings = Arc::make_mut(&mut self.settings);
+        settings.worker_id = reply.worker_id.clone();
+        let root = self
+            .config
+            .scratch_dir
+            .clone()
+            .unwrap_or_else(|| std::env::temp_dir().join("stylenerf-worker"));
+        settings.scratch_dir = root.join(&reply.worker_id);
+        tracing::info!(
+            worker_id = %reply.worker_id,
+            name = %self.config.name,
+            device = %self.capabilities.device,
+            memory_bytes = self.capabilities.memory_bytes,
+            max_tasks = self.capabilities.max_tasks,
+            lease_ttl_ms = reply.lease_ttl_ms,
+            "worker registered"
+        );
+        Ok(())
+    }
+
+    /// The id the coordinator gave this worker.
+    pub fn id(&self) -> &str {
+        &self.settings.worker_id
+    }
+
+    pub fn handle(&self) -> WorkerHandle {
+        self.handle.clone()
+    }
+
+    /// Leases and runs tasks until [`WorkerHandle::shutdown`]; then stops the running tasks
+    /// (they checkpoint and release their leases) and returns.
+    pub async fn run(mut self) -> anyhow::Result<RunSummary> {
+        let mut shutdown = self.handle.shutdown.subscribe();
+        let mut running: JoinSet<(pb::TaskAssignment, TaskResult)> = JoinSet::new();
+        let mut stops: HashMap<u64, Arc<TaskStop>> = HashMap::new();
+        let mut reserved: HashMap<u64, u64> = HashMap::new();
+        let mut summary = RunSummary::default();
+        let mut backoff = Duration::from_millis(500);
+        let budget = self.config.memory_bytes;
+        let max_tasks = self.config.max_tasks.max(1);
+        while !*shutdown.borrow() {
+            let used: u64 = reserved.values().sum();
+            let free = budget.saturating_sub(used);
+            let can_lease = running.len() < max_tasks && (budget == 0 || free > 0);
+            let mut workers = self.clients.workers.clone();
+            let request = pb::LeaseTaskRequest {
+                worker_id: self.settings.worker_id.clone(),
+                wait_ms: self.config.lease_wait.as_millis() as u64,
+                // 0 lets the coordinator use the registered budget minus the running tasks.
+                free_memory_bytes: if budget == 0 { 0 } else { free },
+            };
+            let lease = async move {
+                if can_lease {
+                    workers.lease_task(request).await
+                } else {
+                    std::future::pending().await
+                }
+            };
+            tokio::select! {
+                _ = shutdown.changed() => break,
+                Some(joined) = running.join_next() => {
+                    self.finished(joined, &mut stops, &mut reserved, &mut summary);
+                }
+                reply = lease => match reply {
+                    Ok(reply) => {
+                        backoff = Duration::from_millis(500);
+                        let Some(task) = reply.into_inner().task else { continue };
+                        if budget > 0 && task.memory_bytes > free {
+                            // The coordinator checks this too; never run what does not fit.
+                            tracing::error!(task_id = task.task_id, memory = task.memory_bytes,
+                                free, "leased a task larger than the free budget; releasing it");
+                            self.release_unrun(&task, "the task does not fit the worker's memory").await;
+                            continue;
+                        }
+                        tracing::info!(
+                            task_id = task.task_id, job_id = %task.job_id,
+                            stage = crate::stages::stage_name(
+                                pb::Stage::try_from(task.stage).unwrap_or_default()),
+                            attempt = task.attempt, "task leased"
+                        );
+                        let (stop, run) = start_task(
+                            self.clients.clone(),
+                            self.settings.clone(),
+                            task.clone(),
+                            self.handle.events.clone(),
+                        );
+                        stops.insert(task.task_id, stop);
+                        reserved.insert(task.task_id, task.memory_bytes);
+                        running.spawn(async move { (task, run.await) });
+                    }
+                    Err(s) if s.code() == tonic::Code::NotFound => {
+                        tracing::warn!("the coordinator does not know this worker; registering again");
+                        if let Err(e) = self.register_again(Some(self.settings.worker_id.clone())).await {
+                            tracing::warn!(error = %e, "registering failed");
+                            tokio::time::sleep(backoff).await;
+                        }
+                    }
+                    Err(s) => {
+                        tracing::warn!(error = %s, retry_in = ?backoff, "LeaseTask failed");
+                        tokio::select! {
+                            _ = tokio::time::sleep(backoff) => {}
+                            _ = shutdown.changed() => break,
+                        }
+                        backoff = (backoff * 2).min(Duration::from_secs(30));
+                    }
+                },
+            }
+        }
+        if !running.is_empty() {
+            tracing::info!(
+                tasks = running.len(),
+                "shutting down: checkpointing running tasks"
+            );
+        }
+        for stop in stops.values() {
+            stop.stop(StopReason::Shutdown);
+        }
+        while let Some(joined) = running.join_next().await {
+            self.finished(joined, &mut stops, &mut reserved, &mut summary);
+        }
+        tracing::info!(?summary, "worker stopped");
+        Ok(summary)
+    }
+
+    fn finished(
+        &self,
+        joined: Result<(pb::TaskAssignment, TaskResult), tokio::task::JoinError>,
+        stops: &mut HashMap<u64, Arc<TaskStop>>,
+        reserved: &mut HashMap<u64, u64>,
+        summary: &mut RunSummary,
+    ) {
+        let (task, result) = match joined {
+            Ok(done) => done,
+            Err(e) => {
+                // A panic outside the stage (the stage's own panics are reported as failures).
+                tracing::error!(error = %e, "a task runner panicked");
+                return;
+            }
+        };
+        stops.remove(&task.task_id);
+        reserved.remove(&task.task_id);
+        match &result {
+            TaskResult::Completed { .. } => summary.completed += 1,
+            TaskResult::Failed { .. } => summary.failed += 1,
+            TaskResult::Cancelled => summary.cancelled += 1,
+            TaskResult::Released { .. } | TaskResult::LeaseLost => summary.released += 1,
+        }
+        tracing::info!(task_id = task.task_id, ?result, "task finished");
+        let _ = self.handle.events.send(WorkerEvent::TaskFinished {
+            task_id: task.task_id,
+            job_id: task.job_id,
+            stage: pb::Stage::try_from(task.stage).unwrap_or_default(),
+            result,
+        });
+    }
+
+    /// Gives back a task without running it.
+    async fn release_unrun(&self, task: &pb::TaskAssignment, reason: &str) {
+        let request = pb::FailTaskRequest {
+            worker_id: self.settings.worker_id.clone(),
+            task_id: task.task_id,
+            fencing_token: task.fencing_token,
+            reason: reason.to_string(),
+            retryable: true,
+        };
+        if let Err(s) = self.clients.workers.clone().fail_task(request).await {
+            tracing::warn!(task_id = task.task_id, error = %s, "FailTask was refused");
+        }
+    }
+}
