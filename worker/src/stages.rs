@@ -7,11 +7,15 @@
 //! [`StageControl`]: stylenerf_engine::stages::StageControl
 
 use serde::Serialize;
+use stylenerf_engine::camera::Camera;
+use stylenerf_engine::field::saved;
 use stylenerf_engine::image_io;
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::decoder_pretrain::{self, DecoderPretrainConfig, StyleImage};
+use stylenerf_engine::stages::mutual_learning::{self, MutualConfig};
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
-use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
+use stylenerf_engine::stages::render_stylized::{self, RenderStylizedConfig};
+use stylenerf_engine::stages::render_views::{self, interpolated_path, RenderViewsConfig};
 use stylenerf_engine::stages::Outcome;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::RenderedViews;
@@ -35,12 +39,8 @@ pub async fn run_stage(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskError>
         Stage::NerfPretrain => nerf_pretrain(ctx).await,
         Stage::RenderViews => render_views(ctx).await,
         Stage::DecoderPretrain => decoder_pretrain(ctx).await,
-        stage @ (Stage::MutualLearning | Stage::RenderStylized) => {
-            Err(TaskError::permanent(format!(
-                "stage {} is not available in this worker build",
-                stage_name(stage)
-            )))
-        }
+        Stage::MutualLearning => mutual_learning(ctx).await,
+        Stage::RenderStylized => render_stylized(ctx).await,
         Stage::Unspecified => Err(TaskError::permanent(format!(
             "task {} has no (or an unknown) stage: {}",
             ctx.assignment.task_id, ctx.assignment.stage
@@ -84,16 +84,7 @@ async fn decoder_pretrain(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskErr
     let encoder_path = ctx.settings.encoder.clone();
     ctx.run_engine(move |control, device, out| {
         let views = RenderedViews::load(&views_dir)?;
-        let styles = style_paths
-            .iter()
-            .enumerate()
-            .map(|(i, path)| {
-                Ok(StyleImage {
-                    name: format!("style-{i}"),
-                    image: image_io::load_rgb(path)?,
-                })
-            })
-            .collect::<stylenerf_engine::Result<Vec<_>>>()?;
+        let styles = load_styles(&style_paths)?;
         let encoder = EncoderWeights::load_or_bundled(encoder_path.as_deref())?;
         let inputs = decoder_pretrain::Inputs {
             views: &views,
@@ -105,6 +96,155 @@ async fn decoder_pretrain(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskErr
         Ok(map_done(outcome, |r| numeric_fields(&r)))
     })
     .await
+}
+
+async fn mutual_learning(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskError> {
+    let cfg = ctx
+        .config
+        .stage_config("mutual_learning", MutualConfig::preset)?;
+    let field_dir = ctx.upstream(Stage::NerfPretrain).await?;
+    let views_dir = ctx.upstream(Stage::RenderViews).await?;
+    let decoder_dir = ctx.upstream(Stage::DecoderPretrain).await?;
+    let style_paths = ctx.styles().await?;
+    let encoder_path = ctx.settings.encoder.clone();
+    ctx.run_engine(move |control, device, out| {
+        let views = RenderedViews::load(&views_dir)?;
+        let styles = load_styles(&style_paths)?;
+        let encoder = EncoderWeights::load_or_bundled(encoder_path.as_deref())?;
+        let inputs = mutual_learning::Inputs {
+            field_dir: &field_dir,
+            views: &views,
+            decoder_dir: &decoder_dir,
+            styles: &styles,
+            encoder: &encoder,
+        };
+        let outcome = mutual_learning::run(inputs, &cfg, out, control, device)?;
+        Ok(map_done(outcome, |r| numeric_fields(&r)))
+    })
+    .await
+}
+
+async fn render_stylized(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskError> {
+    let mut cfg = ctx
+        .config
+        .stage_config("render_stylized", RenderStylizedConfig::preset)?;
+    let request = RenderRequest::parse(&ctx.config.raw)?;
+    if let Some(spec) = &request.blend {
+        cfg.styles = vec![spec.clone()];
+    }
+    if let Some(fps) = request.fps {
+        cfg.frame_ms = (1000.0 / fps).round().max(1.0) as u32;
+    }
+    let field_dir = ctx.upstream(Stage::NerfPretrain).await?;
+    let views_dir = ctx.upstream(Stage::RenderViews).await?;
+    let decoder_dir = ctx.upstream(Stage::DecoderPretrain).await?;
+    let mutual_dir = ctx.upstream(Stage::MutualLearning).await?;
+    let style_paths = ctx.styles().await?;
+    let encoder_path = ctx.settings.encoder.clone();
+    ctx.run_engine(move |control, device, out| {
+        let views = RenderedViews::load(&views_dir)?;
+        let styles = load_styles(&style_paths)?;
+        let encoder = EncoderWeights::load_or_bundled(encoder_path.as_deref())?;
+        let path = request.cameras(&field_dir, device)?;
+        let inputs = render_stylized::Inputs {
+            field_dir: &field_dir,
+            views: &views,
+            decoder_dir: &decoder_dir,
+            mutual_dir: &mutual_dir,
+            styles: &styles,
+            encoder: &encoder,
+            path: path.as_deref(),
+        };
+        let outcome = render_stylized::run(inputs, &cfg, out, control, device)?;
+        Ok(map_done(outcome, |r| {
+            Metrics::from([
+                ("specs".to_string(), r.specs.len() as f64),
+                ("seconds".to_string(), r.seconds),
+            ])
+        }))
+    })
+    .await
+}
+
+/// The job's style images, named `style-<index>` (the names blends refer to).
+fn load_styles(paths: &[std::path::PathBuf]) -> stylenerf_engine::Result<Vec<StyleImage>> {
+    paths
+        .iter()
+        .enumerate()
+        .map(|(i, path)| {
+            Ok(StyleImage {
+                name: format!("style-{i}"),
+                image: image_io::load_rgb(path)?,
+            })
+        })
+        .collect()
+}
+
+/// What a render request (`RenderJob`) adds to the task configuration.
+#[derive(Debug, Clone, PartialEq, Default)]
+struct RenderRequest {
+    /// `style-0:0.3,style-1:0.7`.
+    blend: Option<String>,
+    /// `interpolate` (default) or `train`.
+    kind: String,
+    num_frames: usize,
+    fps: Option<f64>,
+}
+
+impl RenderRequest {
+    fn parse(raw: &serde_json::Map<String, serde_json::Value>) -> Result<Self, TaskError> {
+        let mut r = RenderRequest::default();
+        if let Some(path) = raw.get("camera_path") {
+            r.kind = path["kind"].as_str().unwrap_or_default().to_string();
+            r.num_frames = path["num_frames"].as_u64().unwrap_or(0) as usize;
+            r.fps = path["fps"].as_f64().filter(|f| *f > 0.0);
+            if !matches!(r.kind.as_str(), "" | "interpolate" | "train") {
+                return Err(TaskError::permanent(format!(
+                    "camera_path.kind: unknown kind `{}` (this worker renders `interpolate` \
+                     and `train` paths)",
+                    r.kind
+                )));
+            }
+        }
+        if let Some(serde_json::Value::Array(weights)) = raw.get("style_blend") {
+            let parts: Vec<String> = weights
+                .iter()
+                .map(|w| {
+                    format!(
+                        "style-{}:{}",
+                        w["style_index"].as_u64().unwrap_or(0),
+                        w["weight"].as_f64().unwrap_or(0.0)
+                    )
+                })
+                .collect();
+            r.blend = Some(parts.join(","));
+        }
+        Ok(r)
+    }
+
+    /// The cameras of a requested path; `None` for the default (`render_views`' path).
+    fn cameras(
+        &self,
+        field_dir: &std::path::Path,
+        device: &candle_core::Device,
+    ) -> stylenerf_engine::Result<Option<Vec<Camera>>> {
+        if self.kind.is_empty() && self.num_frames == 0 {
+            return Ok(None);
+        }
+        let (_, meta) = saved::load(field_dir, device)?;
+        let train = meta.train_cameras;
+        Ok(Some(match self.kind.as_str() {
+            "train" => train,
+            _ => {
+                let frames = if self.num_frames == 0 {
+                    60
+                } else {
+                    self.num_frames
+                };
+                interpolated_path(&train, train.len().clamp(2, 8), frames)
+            }
+        }))
+    }
 }
 
 fn map_done<R>(outcome: Outcome<R>, f: impl FnOnce(R) -> Metrics) -> Outcome<Metrics> {

@@ -20,13 +20,7 @@ use stylenerf_engine::preset::{apply_overrides, Preset};
 use crate::error::TaskError;
 
 /// Stage names, as used in `config_json` and override keys.
-pub const STAGE_NAMES: [&str; 5] = [
-    "nerf_pretrain",
-    "render_views",
-    "decoder_pretrain",
-    "mutual_learning",
-    "render_stylized",
-];
+pub use stylenerf_engine::stages::STAGES as STAGE_NAMES;
 
 /// The parsed `config_json` of a task.
 #[derive(Debug, Clone, PartialEq)]

@@ -60,7 +60,10 @@ pub struct Decoder {
 }
 
 impl Decoder {
-    /// A freshly initialised decoder (He-uniform weights, zero biases), seeded.
+    /// A freshly initialised decoder, seeded: He-uniform weights and zero biases, except the
+    /// last convolution, whose weights are scaled by 0.1 and whose bias is mid-grey, so a new
+    /// decoder starts from a flat grey image instead of saturated noise (a decoder trained
+    /// from scratch in a few hundred steps otherwise spends them undoing that noise).
     pub fn new(arch: VggArch, seed: u64, device: &Device) -> Result<Self> {
         let mut rng = Rng::new(seed);
         let steps = mirror(arch);
@@ -68,12 +71,13 @@ impl Decoder {
             .iter()
             .map(|s| {
                 let fan_in = s.c_in * 9;
-                let bound = (6.0 / fan_in as f32).sqrt();
+                let last = !s.relu;
+                let bound = (6.0 / fan_in as f32).sqrt() * if last { 0.1 } else { 1.0 };
                 let w: Vec<f32> = (0..s.c_out * fan_in)
                     .map(|_| (rng.uniform() * 2.0 - 1.0) * bound)
                     .collect();
                 let w = Tensor::from_vec(w, (s.c_out, s.c_in, 3, 3), device)?;
-                let b = Tensor::zeros(s.c_out, DType::F32, device)?;
+                let b = Tensor::full(if last { 0.5f32 } else { 0.0 }, s.c_out, device)?;
                 Ok((Var::from_tensor(&w)?, Var::from_tensor(&b)?))
             })
             .collect::<Result<_>>()?;
