@@ -19,7 +19,8 @@ use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::RenderedViews;
 
-use super::common::{parse_device, stage_progress};
+use super::common::stage_progress;
+use stylenerf_engine::device::parse_device;
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
@@ -38,6 +39,10 @@ pub struct RunArgs {
     /// every style.
     #[arg(long = "render")]
     render: Vec<String>,
+    /// A pretrained decoder to start decoder_pretrain from (this project's safetensors, or
+    /// AdaIN's `decoder.pth` together with `--encoder vgg_normalised.pth`).
+    #[arg(long)]
+    decoder: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -207,7 +212,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             views: &views,
             styles: &p.styles,
             encoder: &p.encoder,
-            init_decoder: None,
+            init_decoder: args.decoder.as_deref(),
         };
         decoder_pretrain::run(inputs, &dp, out, c, &p.device)
     })? {
