@@ -136,6 +136,13 @@ impl StyleModule {
 
     /// Stylized colour `[R, 3]` of the batch's rays under latent `[1, Z]`.
     pub fn render(&self, batch: &SurfaceBatch, latent: &Tensor) -> Result<Tensor> {
+        if batch.points01.dim(0)? == 0 {
+            // No ray hits anything (candle cannot slice empty tensors): all background.
+            return Ok(self
+                .background(latent)?
+                .broadcast_as((batch.num_rays, 3))?
+                .contiguous()?);
+        }
         let colours = self.sample_colours(batch, latent)?;
         let w = batch.weights.to_dtype(colours.dtype())?;
         let t = batch.transparency.to_dtype(colours.dtype())?;
@@ -207,6 +214,7 @@ impl StyleModule {
 mod tests {
     use super::*;
     use crate::style2d::gradcheck;
+    use crate::stylized::surface::SurfaceSamples;
 
     fn batch(device: &Device) -> SurfaceBatch {
         // Three rays with 2, 0 and 3 samples.
@@ -295,6 +303,13 @@ mod tests {
             ..b64
         };
         let l = Tensor::new(&[[0.3f32, -1.0, 2.0]], &dev).unwrap();
+        let empty = SurfaceSamples {
+            offsets: vec![0, 0, 0],
+            geometry_dim: 4,
+            ..Default::default()
+        };
+        let none = module.render(&empty.all(&dev).unwrap(), &l).unwrap();
+        assert_eq!(none.dims(), &[2, 3]);
         let out = module.render(&b, &l).unwrap();
         let bg = module.background(&l).unwrap();
         let row1 = out.get(1).unwrap().unsqueeze(0).unwrap();

@@ -8,7 +8,7 @@
 //! of the dozens a ray marches through) makes a mutual-learning step cost one small MLP pass
 //! instead of a field evaluation along whole rays.
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 
 use crate::camera::Camera;
 use crate::field::radiance::RadianceField;
@@ -92,6 +92,12 @@ impl SurfaceSamples {
                 .zip(&keep)
                 .filter_map(|(s, k)| k.then_some(*s))
                 .collect();
+            if samples.ray.is_empty() {
+                // Every ray of the chunk misses the scene (candle cannot slice empty tensors).
+                let n = out.weights.len() as u32;
+                out.offsets.extend(std::iter::repeat_n(n, part.len()));
+                continue;
+            }
             let points01 = field.points01(&samples.positions)?;
             let (_, geometry) = field.geometry(&points01)?;
             let geometry: Vec<f32> = geometry.detach().flatten_all()?.to_vec1()?;
@@ -169,7 +175,7 @@ impl SurfaceBatch {
     /// `[1, 3]`): Σ_k w_k c_k + (1 − Σ_k w_k) · background, `[R, 3]`.
     pub fn composite(&self, colours: &Tensor, background: &Tensor) -> Result<Tensor> {
         let weighted = colours.broadcast_mul(&self.weights)?;
-        let rgb = Tensor::zeros((self.num_rays, 3), DType::F32, colours.device())?
+        let rgb = Tensor::zeros((self.num_rays, 3), colours.dtype(), colours.device())?
             .index_add(&self.ray, &weighted, 0)?;
         Ok((rgb + self.transparency.broadcast_mul(background)?)?)
     }
