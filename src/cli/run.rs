@@ -13,7 +13,7 @@ use stylenerf_engine::preset::{parse_override, stage_overrides, Preset};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::render_stylized::{self, markdown_table, RenderStylizedConfig};
 use stylenerf_engine::stages::{
-    decoder_pretrain, mutual_learning, nerf_pretrain, render_views, Outcome,
+    decoder_pretrain, mutual_learning, nerf_pretrain, render_views, Outcome, STAGES,
 };
 use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::weights::EncoderWeights;
@@ -39,6 +39,9 @@ pub struct RunArgs {
     /// every style.
     #[arg(long = "render")]
     render: Vec<String>,
+    /// Stop after this stage (e.g. `decoder_pretrain` to compare 2D settings).
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(STAGES))]
+    until: Option<String>,
     /// A pretrained decoder to start decoder_pretrain from (this project's safetensors, or
     /// AdaIN's `decoder.pth` together with `--encoder vgg_normalised.pth`).
     #[arg(long)]
@@ -85,10 +88,16 @@ struct Pipeline {
     styles: Vec<StyleImage>,
     encoder: EncoderWeights,
     out: PathBuf,
+    until: Option<String>,
 }
 
 impl Pipeline {
-    fn new(args: &PipelineArgs, styles: &[String], out: &Path) -> anyhow::Result<Self> {
+    fn new(
+        args: &PipelineArgs,
+        styles: &[String],
+        out: &Path,
+        until: Option<String>,
+    ) -> anyhow::Result<Self> {
         let overrides = args
             .overrides
             .iter()
@@ -105,6 +114,7 @@ impl Pipeline {
             styles,
             encoder: EncoderWeights::load_or_bundled(args.encoder.as_deref())?,
             out: out.to_path_buf(),
+            until,
         })
     }
 
@@ -125,7 +135,8 @@ impl Pipeline {
         )?)
     }
 
-    /// Runs `f` unless the stage already finished; `false` when it stopped early.
+    /// Runs `f` unless the stage already finished; `false` when the pipeline should stop here
+    /// (the stage stopped early, or it is the `--until` stage).
     fn stage<T>(
         &self,
         stage: &str,
@@ -135,14 +146,15 @@ impl Pipeline {
         ) -> stylenerf_engine::Result<Outcome<T>>,
     ) -> anyhow::Result<bool> {
         let dir = self.dir(stage);
+        let last = self.until.as_deref() == Some(stage);
         if dir.join("metrics.json").exists() {
             println!("{stage}: already complete in {}", dir.display());
-            return Ok(true);
+            return Ok(!last);
         }
         let (bar, control) = stage_progress(stage);
         let outcome = f(&dir, &control).with_context(|| format!("stage {stage}"))?;
         bar.finish();
-        Ok(matches!(outcome, Outcome::Done(_)))
+        Ok(matches!(outcome, Outcome::Done(_)) && !last)
     }
 
     fn render_stylized(&self, specs: &[String], out: &Path) -> anyhow::Result<()> {
@@ -189,7 +201,7 @@ impl Pipeline {
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
-    let p = Pipeline::new(&args.common, &args.styles, &args.out)?;
+    let p = Pipeline::new(&args.common, &args.styles, &args.out, args.until.clone())?;
     let scene = Scene::load(&args.data, &LoadOptions::default())
         .with_context(|| format!("loading {}", args.data.display()))?;
     let nerf = p.config("nerf_pretrain", nerf_pretrain::NerfConfig::preset)?;
@@ -199,9 +211,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     let rv = p.config("render_views", render_views::RenderViewsConfig::preset)?;
-    p.stage("render_views", |out, c| {
+    if !p.stage("render_views", |out, c| {
         render_views::run(&p.dir("nerf_pretrain"), &rv, out, c, &p.device)
-    })?;
+    })? {
+        return Ok(());
+    }
     let views = RenderedViews::load(&p.dir("render_views"))?;
     let dp = p.config(
         "decoder_pretrain",
@@ -235,6 +249,6 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 }
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
-    let p = Pipeline::new(&args.common, &args.styles, &args.run)?;
+    let p = Pipeline::new(&args.common, &args.styles, &args.run, None)?;
     p.render_stylized(&args.render, &args.run.join("eval"))
 }
