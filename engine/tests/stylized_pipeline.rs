@@ -55,7 +55,7 @@ fn upstream() -> &'static Upstream {
             &root.join("scene"),
         )
         .unwrap();
-        let scene = Scene::load(&root.join("scene"), &LoadOptions::default()).unwrap();
+        let scene = Scene::load(root.join("scene"), &LoadOptions::default()).unwrap();
         let mut nerf = NerfConfig::preset(Preset::Tiny);
         nerf.steps = 120;
         done(nerf_pretrain::run(&scene, &nerf, &root.join("nerf"), &ctl, &dev).unwrap());

@@ -168,7 +168,9 @@ mod tests {
         let mut rng = Rng::new(1);
         for _ in 0..50 {
             let r = Window::random(128, 96, 64, &mut rng);
-            assert!(r.x % 8 == 0 && r.y % 8 == 0 && r.x + 64 <= 128 && r.y + 64 <= 96);
+            assert!(
+                r.x.is_multiple_of(8) && r.y.is_multiple_of(8) && r.x + 64 <= 128 && r.y + 64 <= 96
+            );
         }
         assert_eq!(Window::random(40, 32, 0, &mut rng), Window::full(40, 32));
     }
