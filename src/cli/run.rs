@@ -19,7 +19,8 @@ use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::RenderedViews;
 
-use super::common::{parse_device, stage_progress};
+use super::common::stage_progress;
+use stylenerf_engine::device::parse_device;
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
