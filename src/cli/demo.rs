@@ -94,6 +94,13 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
             anyhow::bail!("the worker stopped unexpectedly ({summary:?})");
         }
     };
+    if outcome.is_none() {
+        eprintln!("stopping: the running stage checkpoints and releases its task (Ctrl-C again exits now)");
+        tokio::spawn(async {
+            shutdown_signal().await;
+            std::process::exit(130);
+        });
+    }
     handle.shutdown();
     let summary = worker_task.await.context("the worker panicked")??;
     let downloaded = match &outcome {
