@@ -393,11 +393,14 @@ pub fn run(
             let ls = style_loss(&feats, &targets[s].stats)?;
             (pixel_rows(&o)?, Some((lc, ls)))
         } else {
-            if !frozen.contains_key(&(v, s)) {
-                let o = net.decoder.forward(&target)?.detach();
-                frozen.insert((v, s), pixel_rows(&o)?);
-            }
-            (frozen[&(v, s)].index_select(&pixel_idx, 0)?, None)
+            let rows = match frozen.entry((v, s)) {
+                std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+                std::collections::hash_map::Entry::Vacant(e) => {
+                    let o = net.decoder.forward(&target)?.detach();
+                    e.insert(pixel_rows(&o)?)
+                }
+            };
+            (rows.index_select(&pixel_idx, 0)?, None)
         };
         let mimic_nerf = mse(&c_nerf, &c_2d.detach())?;
         let nll = latents.nll(v, s)?;
