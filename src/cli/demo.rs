@@ -129,7 +129,7 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
         }
         Some(Err(e)) => Err(e),
         Some(Ok(())) => {
-            print_outputs(&downloaded.expect("downloaded on success"))?;
+            print_outputs(&downloaded.expect("downloaded on success"), &args.styles)?;
             Ok(())
         }
     }
@@ -244,7 +244,7 @@ async fn submit_or_reuse(client: &Client, mut spec: JobSpec) -> anyhow::Result<p
 }
 
 /// Prints where the interesting outputs are.
-fn print_outputs(out: &Path) -> anyhow::Result<()> {
+fn print_outputs(out: &Path, styles: &[String]) -> anyhow::Result<()> {
     println!("\nOutputs in {}:", out.display());
     let stylized = out.join("render_stylized");
     let mut specs: Vec<PathBuf> = std::fs::read_dir(&stylized)
@@ -255,7 +255,13 @@ fn print_outputs(out: &Path) -> anyhow::Result<()> {
     specs.sort();
     for spec in specs {
         let name = spec.file_name().unwrap_or_default().to_string_lossy();
-        println!("  style {name}:");
+        // `style-<i>` is the i-th style of the job, in the order given.
+        let style = name
+            .strip_prefix("style-")
+            .and_then(|i| i.parse::<usize>().ok())
+            .and_then(|i| styles.get(i))
+            .map_or(String::new(), |s| format!(" ({s})"));
+        println!("  {name}{style}:");
         for (what, path) in [
             ("frames", spec.join("frames")),
             ("animation", spec.join("animation.gif")),
