@@ -6,7 +6,8 @@ mod cli;
 use clap::Parser;
 
 fn main() -> std::process::ExitCode {
-    let args = cli::Cli::parse();
+    let mut args = cli::Cli::parse();
+    cli::quiet_default_logs(&mut args);
     cli::init_tracing(&args.global);
     match cli::run(args) {
         Ok(()) => std::process::ExitCode::SUCCESS,

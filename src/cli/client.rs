@@ -416,7 +416,8 @@ fn terminal_outcome(job: &pb::Job, waited: bool) -> anyhow::Result<()> {
 }
 
 /// Follows the job until it is terminal: progress bars (text) or one event per line (JSON).
-async fn follow(
+/// Also used by `stylenerf demo`.
+pub(crate) async fn follow(
     client: &Client,
     job_id: &str,
     json: bool,

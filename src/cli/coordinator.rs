@@ -30,8 +30,8 @@ pub fn run(command: CoordinatorCommand) -> anyhow::Result<()> {
     })
 }
 
-/// Resolves on Ctrl-C or (on Unix) SIGTERM.
-async fn shutdown_signal() {
+/// Resolves on Ctrl-C or (on Unix) SIGTERM (also used by `demo` and `up`).
+pub(crate) async fn shutdown_signal() {
     #[cfg(unix)]
     {
         let mut term =

@@ -9,10 +9,12 @@ mod client;
 mod client_view;
 mod common;
 mod coordinator;
+mod demo;
 mod nerf;
 mod run;
 mod scene;
 mod stylize;
+mod up;
 mod weights;
 mod worker;
 
@@ -45,6 +47,11 @@ pub enum LogFormat {
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// The whole service in one process: generate the default scene, paint the bundled
+    /// styles, start a coordinator and a worker, train, and print where the results are.
+    Demo(demo::DemoArgs),
+    /// A local cluster: a coordinator plus N worker processes, until Ctrl-C.
+    Up(up::UpArgs),
     /// Generate or inspect scenes.
     #[command(subcommand)]
     Scene(scene::SceneCommand),
@@ -85,6 +92,17 @@ pub enum BenchCommand {
     Vgg(bench_vgg::BenchVggArgs),
 }
 
+/// `demo` draws progress bars on stderr: unless a log level was asked for, keep the embedded
+/// coordinator's and worker's info logs from interleaving with them.
+pub fn quiet_default_logs(cli: &mut Cli) {
+    if matches!(cli.command, Command::Demo(_))
+        && cli.global.log == "info"
+        && std::env::var_os("STYLENERF_LOG").is_none()
+    {
+        cli.global.log = "warn".into();
+    }
+}
+
 pub fn init_tracing(global: &GlobalArgs) {
     let filter = tracing_subscriber::EnvFilter::try_new(&global.log)
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
@@ -99,6 +117,8 @@ pub fn init_tracing(global: &GlobalArgs) {
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Demo(args) => demo::run(args),
+        Command::Up(args) => up::run(args),
         Command::Scene(cmd) => scene::run(cmd),
         Command::Nerf(cmd) => nerf::run(cmd),
         Command::Stylize(cmd) => stylize::run(cmd),
