@@ -62,6 +62,10 @@ pub struct MutualConfig {
     pub style_weight: f64,
     /// λ_m.
     pub mimic_weight: f64,
+    /// Weight of a style loss on the stylized NeRF's own window (0: mimicry only). L_mimic
+    /// alone pulls the NeRF towards the average of the decoder's view-inconsistent outputs,
+    /// which is flatter than any of them; this term keeps the NeRF's window stylized.
+    pub nerf_style_weight: f64,
     /// Fraction of the steps during which the decoder is frozen.
     pub decoder_freeze: f64,
     /// Fine-tune the decoder at all (off: the "no decoder fine-tuning" ablation).
@@ -84,6 +88,7 @@ impl MutualConfig {
             latent_weight: 1e-4,
             style_weight: 1.0,
             mimic_weight: 10.0,
+            nerf_style_weight: 0.005,
             decoder_freeze: 0.4,
             finetune_decoder: true,
             learnable_latents: true,
@@ -128,6 +133,8 @@ pub struct MutualRecord {
     pub step: u64,
     pub mimic: f32,
     pub latent_nll: f32,
+    /// Style loss of the NeRF's window (0 when `nerf_style_weight` is 0).
+    pub nerf_style: f32,
     /// Decoder losses (0 while it is frozen).
     pub content: f32,
     pub style: f32,
@@ -404,10 +411,21 @@ pub fn run(
         let mimic_nerf = mse(&c_nerf, &c_2d.detach())?;
         let nll = latents.nll(v, s)?;
         let mut total = (&mimic_nerf + (&nll * cfg.latent_weight)?)?;
+        let mut nerf_style = 0.0;
+        if cfg.nerf_style_weight > 0.0 {
+            let img = c_nerf
+                .reshape((1, window.height, window.width, 3))?
+                .permute((0, 3, 1, 2))?
+                .contiguous()?;
+            let ls = style_loss(&net.encoder.features(&img)?, &targets[s].stats)?;
+            nerf_style = ls.to_scalar::<f32>()?;
+            total = (total + (ls * cfg.nerf_style_weight)?)?;
+        }
         let mut rec = MutualRecord {
             step: step + 1,
             mimic: mimic_nerf.to_scalar()?,
             latent_nll: nll.to_scalar()?,
+            nerf_style,
             content: 0.0,
             style: 0.0,
         };
