@@ -76,7 +76,7 @@ pub struct WarpTolerance {
 impl DecoderPretrainConfig {
     pub fn preset(preset: Preset) -> Self {
         let base = Self {
-            steps: 400,
+            steps: 300,
             patch: 64,
             lr: 5e-4,
             style_weight: 1.0,

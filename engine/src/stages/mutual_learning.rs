@@ -81,7 +81,7 @@ pub struct MutualConfig {
 impl MutualConfig {
     pub fn preset(preset: Preset) -> Self {
         let base = Self {
-            steps: 600,
+            steps: 400,
             patch: 64,
             lr: 2e-3,
             decoder_lr: 1e-4,

@@ -62,6 +62,9 @@ pub struct RenderStylizedConfig {
     pub frame_ms: u32,
     /// Longer side the style images are resized to for their statistics.
     pub style_size: u32,
+    /// Style and content losses are measured on every this-many-th frame (VGG passes on every
+    /// frame of every method would cost more than the rendering).
+    pub fidelity_stride: usize,
 }
 
 impl RenderStylizedConfig {
@@ -76,6 +79,7 @@ impl RenderStylizedConfig {
             sheet_rows: 3,
             frame_ms: 80,
             style_size: 256,
+            fidelity_stride: 3,
         };
         match preset {
             Preset::Tiny => Self {
@@ -447,8 +451,14 @@ pub fn run(
                     cameras: &path.cameras,
                     depths: &path.depths,
                 };
+                let every = |v: &[Tensor]| -> Vec<Tensor> {
+                    v.iter()
+                        .step_by(cfg.fidelity_stride.max(1))
+                        .cloned()
+                        .collect()
+                };
                 let (style_loss, content_loss) =
-                    fidelity(&encoder, frames, &path.photoreal, &target)?;
+                    fidelity(&encoder, &every(frames), &every(&path.photoreal), &target)?;
                 methods.push(MethodScores {
                     method: method.into(),
                     short_range: warped_error(&seq, cfg.short_gap, warp_cfg, device)?,
