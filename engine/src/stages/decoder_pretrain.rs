@@ -80,7 +80,7 @@ impl DecoderPretrainConfig {
             patch: 64,
             lr: 5e-4,
             style_weight: 1.0,
-            consistency_weight: 10.0,
+            consistency_weight: 1000.0,
             neighbours: 2,
             min_opacity: 0.5,
             warp: WarpTolerance {
