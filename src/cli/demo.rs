@@ -19,15 +19,12 @@ use stylenerf_client::{names, pb, Client, Input, JobSpec};
 use stylenerf_engine::image_io::save_rgb_png;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::nerfstudio::TRANSFORMS;
-use stylenerf_engine::style2d::painted;
+use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_server::{Coordinator, CoordinatorConfig};
 use stylenerf_worker::{Worker, WorkerConfig};
 
 use super::client::{follow, parse_overrides};
 use super::coordinator::shutdown_signal;
-
-/// Side of the painted style images, in pixels.
-const STYLE_SIZE: u32 = 256;
 
 /// Options of `stylenerf demo`.
 #[derive(Debug, Args)]
@@ -168,12 +165,9 @@ fn paint_styles(dir: &Path, names: &[String]) -> anyhow::Result<Vec<PathBuf>> {
     names
         .iter()
         .map(|name| {
-            let image = painted::paint(name, STYLE_SIZE).with_context(|| {
-                format!(
-                    "unknown bundled style {name:?} (one of {})",
-                    painted::NAMES.join(", ")
-                )
-            })?;
+            let image = StyleImage::load(&format!("{}{name}", StyleImage::BUILTIN))
+                .with_context(|| format!("--styles {name}"))?
+                .image;
             let path = dir.join(format!("{name}.png"));
             if !path.is_file() {
                 save_rgb_png(&path, image.width(), image.height(), image.as_raw())?;
