@@ -9,7 +9,6 @@ use sha2::{Digest, Sha256};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use stylenerf_proto::v1 as pb;
-use tokio::io::AsyncReadExt;
 
 /// Size of each data message (the coordinator accepts at most 1 MiB).
 pub const CHUNK_BYTES: usize = 1 << 20;
@@ -217,32 +216,12 @@ pub(crate) fn message_stream(
             sha256: upload.sha256.clone(),
         })),
     };
-    let data = futures::stream::unfold(Some(file), move |file| {
-        let io_error = io_error.clone();
-        async move {
-            let mut file = file?;
-            let mut buf = vec![0u8; CHUNK_BYTES];
-            let mut filled = 0;
-            while filled < CHUNK_BYTES {
-                match file.read(&mut buf[filled..]).await {
-                    Ok(0) => break,
-                    Ok(n) => filled += n,
-                    Err(e) => {
-                        *io_error.lock().expect("not poisoned") = Some(e);
-                        return None;
-                    }
-                }
-            }
-            if filled == 0 {
-                return None;
-            }
-            buf.truncate(filled);
-            let chunk = pb::UploadChunk {
-                part: Some(pb::upload_chunk::Part::Data(buf)),
-            };
-            Some((chunk, Some(file)))
-        }
-    });
+    let data = futures::StreamExt::map(
+        stylenerf_proto::chunks::file_chunks(file, CHUNK_BYTES, io_error),
+        |buf| pb::UploadChunk {
+            part: Some(pb::upload_chunk::Part::Data(buf)),
+        },
+    );
     futures::StreamExt::chain(futures::stream::iter([header]), data)
 }
 

@@ -2,6 +2,8 @@
 //! artifact services, generated at build time from `proto/stylenerf/v1/*.proto` (see those
 //! files for the documentation of every message and RPC).
 
+pub mod chunks;
+
 /// Generated code of the `stylenerf.v1` package.
 pub mod v1 {
     tonic::include_proto!("stylenerf.v1");

@@ -140,32 +140,12 @@ impl Store {
         // "stream ended" complaint.
         let read_error: Arc<Mutex<Option<std::io::Error>>> = Arc::default();
         let slot = read_error.clone();
-        let data = futures::stream::unfold(Some(file), move |file| {
-            let slot = slot.clone();
-            async move {
-                let mut file = file?;
-                let mut buf = vec![0u8; CHUNK];
-                let mut filled = 0;
-                while filled < CHUNK {
-                    match file.read(&mut buf[filled..]).await {
-                        Ok(0) => break,
-                        Ok(n) => filled += n,
-                        Err(e) => {
-                            *slot.lock().expect("read-error slot") = Some(e);
-                            return None;
-                        }
-                    }
-                }
-                if filled == 0 {
-                    return None;
-                }
-                buf.truncate(filled);
-                let chunk = pb::PutObjectChunk {
-                    part: Some(pb::put_object_chunk::Part::Data(buf)),
-                };
-                Some((chunk, Some(file)))
-            }
-        });
+        let data = futures::StreamExt::map(
+            stylenerf_proto::chunks::file_chunks(file, CHUNK, slot),
+            |buf| pb::PutObjectChunk {
+                part: Some(pb::put_object_chunk::Part::Data(buf)),
+            },
+        );
         let result = self
             .client
             .clone()
