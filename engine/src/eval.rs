@@ -21,15 +21,6 @@ use crate::style2d::network::StyleTarget;
 use crate::warp::{Warp, WarpConfig};
 use crate::Result;
 
-/// A frame sequence with the geometry to warp between its frames.
-pub struct Sequence<'a> {
-    /// `[3, H, W]` per frame, RGB in [0, 1].
-    pub frames: &'a [Tensor],
-    pub cameras: &'a [Camera],
-    /// Row-major z-depth per frame (0 where unknown/empty).
-    pub depths: &'a [Vec<f32>],
-}
-
 /// Warped error of one frame gap.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct GapError {
@@ -42,61 +33,86 @@ pub struct GapError {
     pub coverage: f64,
 }
 
-/// Masked warped error over all pairs (t, t + `gap`).
-pub fn warped_error(
-    seq: &Sequence,
+/// The warps of frame t + `gap` into frame t for every pair along a camera path. They depend
+/// only on the cameras and the depth, so they are built once and applied to every method's
+/// frames (and every style's).
+pub struct PathWarps {
     gap: usize,
-    cfg: WarpConfig,
-    device: &Device,
-) -> Result<GapError> {
-    let (mut sq, mut abs, mut n, mut pairs, mut coverage) = (0.0f64, 0.0f64, 0usize, 0usize, 0.0);
-    for t in 0..seq.frames.len().saturating_sub(gap) {
-        let u = t + gap;
-        let warp = Warp::new(
-            &seq.cameras[t],
-            &seq.depths[t],
-            &seq.cameras[u],
-            &seq.depths[u],
-            cfg,
-            device,
-        )?;
-        if warp.valid_pixels() == 0 {
-            continue;
+    /// `(t, warp)` for the pairs with at least one valid pixel.
+    warps: Vec<(usize, Warp)>,
+    pixels_per_frame: usize,
+}
+
+impl PathWarps {
+    /// `depths`: row-major z-depth per frame (0 where unknown/empty).
+    pub fn new(
+        cameras: &[Camera],
+        depths: &[Vec<f32>],
+        gap: usize,
+        cfg: WarpConfig,
+        device: &Device,
+    ) -> Result<Self> {
+        let mut warps = Vec::new();
+        for t in 0..cameras.len().saturating_sub(gap) {
+            let u = t + gap;
+            let warp = Warp::new(
+                &cameras[t],
+                &depths[t],
+                &cameras[u],
+                &depths[u],
+                cfg,
+                device,
+            )?;
+            if warp.valid_pixels() > 0 {
+                warps.push((t, warp));
+            }
         }
-        let c = seq.frames[t].dim(0)?;
-        let diff = seq.frames[t]
-            .broadcast_mul(&warp.mask().unsqueeze(0)?)?
-            .sub(&warp.apply(&seq.frames[u])?)?;
-        sq += diff.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
-        abs += diff.abs()?.sum_all()?.to_scalar::<f32>()? as f64;
-        n += c * warp.valid_pixels();
-        pairs += 1;
-        coverage += warp.valid_pixels() as f64 / seq.depths[t].len() as f64;
+        Ok(Self {
+            gap,
+            warps,
+            pixels_per_frame: depths.first().map_or(0, Vec::len),
+        })
     }
-    let n = n.max(1) as f64;
-    Ok(GapError {
-        gap,
-        rmse: (sq / n).sqrt(),
-        mae: abs / n,
-        pairs,
-        coverage: coverage / pairs.max(1) as f64,
-    })
+
+    /// Masked warped error of `frames` (`[3, H, W]` per camera, RGB in [0, 1]) over all pairs:
+    /// RMSE and MAE over every valid pixel and channel.
+    pub fn error(&self, frames: &[Tensor]) -> Result<GapError> {
+        let (mut sq, mut abs, mut n, mut coverage) = (0.0f64, 0.0f64, 0usize, 0.0);
+        for (t, warp) in &self.warps {
+            let c = frames[*t].dim(0)?;
+            let diff = frames[*t]
+                .broadcast_mul(&warp.mask().unsqueeze(0)?)?
+                .sub(&warp.apply(&frames[t + self.gap])?)?;
+            sq += diff.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
+            abs += diff.abs()?.sum_all()?.to_scalar::<f32>()? as f64;
+            n += c * warp.valid_pixels();
+            coverage += warp.valid_pixels() as f64 / self.pixels_per_frame as f64;
+        }
+        let pairs = self.warps.len();
+        let n = n.max(1) as f64;
+        Ok(GapError {
+            gap: self.gap,
+            rmse: (sq / n).sqrt(),
+            mae: abs / n,
+            pairs,
+            coverage: coverage / pairs.max(1) as f64,
+        })
+    }
 }
 
 /// Mean style loss of `frames` (`[3, H, W]`, H and W multiples of 8) against `style`, and mean
-/// content loss against `references` (same shapes).
+/// content loss against the relu4_1 features `[1, 512, H/8, W/8]` of the reference frames.
 pub fn fidelity(
     encoder: &VggEncoder,
     frames: &[Tensor],
-    references: &[Tensor],
+    reference_features: &[Tensor],
     style: &StyleTarget,
 ) -> Result<(f64, f64)> {
     let (mut st, mut ct) = (0.0, 0.0);
-    for (f, r) in frames.iter().zip(references) {
+    for (f, reference) in frames.iter().zip(reference_features) {
         let feats = encoder.features(&f.unsqueeze(0)?)?;
         st += style_loss(&feats, &style.stats)?.to_scalar::<f32>()? as f64;
-        let reference = encoder.relu4_1(&r.unsqueeze(0)?)?;
-        ct += content_loss(&feats[3], &reference)?.to_scalar::<f32>()? as f64;
+        ct += content_loss(&feats[3], reference)?.to_scalar::<f32>()? as f64;
     }
     let n = frames.len().max(1) as f64;
     Ok((st / n, ct / n))
@@ -149,12 +165,9 @@ mod tests {
     fn one_scene_scores_near_zero_and_flicker_scores_worse() {
         let (cams, depths, frames) = scene(6, 32);
         let dev = Device::Cpu;
-        let seq = Sequence {
-            frames: &frames,
-            cameras: &cams,
-            depths: &depths,
-        };
-        let good = warped_error(&seq, 1, WarpConfig::default(), &dev).unwrap();
+        let cfg = WarpConfig::default();
+        let warps = PathWarps::new(&cams, &depths, 1, cfg, &dev).unwrap();
+        let good = warps.error(&frames).unwrap();
         assert_eq!(good.pairs, 5);
         assert!(good.coverage > 0.8, "{good:?}");
         // Only bilinear resampling error of a smooth pattern remains.
@@ -162,17 +175,10 @@ mod tests {
         // Identical frames from identical cameras: exactly zero.
         let same_cams = vec![cams[0]; 3];
         let same_frames = vec![frames[0].clone(); 3];
-        let same = warped_error(
-            &Sequence {
-                frames: &same_frames,
-                cameras: &same_cams,
-                depths: &depths[..3],
-            },
-            1,
-            WarpConfig::default(),
-            &dev,
-        )
-        .unwrap();
+        let same = PathWarps::new(&same_cams, &depths[..3], 1, cfg, &dev)
+            .unwrap()
+            .error(&same_frames)
+            .unwrap();
         assert!(same.rmse < 1e-6, "{same:?}");
         // Flicker: every other frame brightened by 0.1 — the error is about 0.1.
         let flicker: Vec<Tensor> = frames
@@ -186,20 +192,13 @@ mod tests {
                 }
             })
             .collect();
-        let bad = warped_error(
-            &Sequence {
-                frames: &flicker,
-                cameras: &cams,
-                depths: &depths,
-            },
-            1,
-            WarpConfig::default(),
-            &dev,
-        )
-        .unwrap();
+        let bad = warps.error(&flicker).unwrap();
         assert!(bad.rmse > 0.09 && bad.rmse < 0.11, "{bad:?}");
         // No frame pairs at a gap longer than the sequence.
-        let none = warped_error(&seq, 10, WarpConfig::default(), &dev).unwrap();
+        let none = PathWarps::new(&cams, &depths, 10, cfg, &dev)
+            .unwrap()
+            .error(&frames)
+            .unwrap();
         assert_eq!(none.pairs, 0);
     }
 }

@@ -104,6 +104,7 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
     assert!(report.consistency_mse.is_finite() && report.style_loss.is_finite());
     for f in [
         "decoder.safetensors",
+        "adain_decoder.safetensors",
         "vae.safetensors",
         "styles.json",
         "metrics.json",
@@ -118,21 +119,34 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
     assert_eq!(styles_file.styles[0].latent.mu.len(), cfg.vae.latent);
     assert!(styles_file.styles[1].latent.sigma.iter().all(|s| *s > 0.0));
 
+    // The plain-AdaIN baseline is the decoder before L_co switched on, not the final one.
+    let read = |dir: &std::path::Path, f: &str| std::fs::read(dir.join(f)).unwrap();
+    assert!(cfg.consistency_from > 0.0 && cfg.consistency_from < 1.0);
+    assert_ne!(
+        read(&full, "adain_decoder.safetensors"),
+        read(&full, "decoder.safetensors")
+    );
+
+    // Stopped after the switch: the checkpoint must carry the baseline's weights.
     let resumed = tmp.path().join("resumed");
     let mut stop = StageControl::default();
-    stop.stop_after_step = Some(2);
+    let switch = (cfg.steps as f64 * cfg.consistency_from).round() as u64;
+    stop.stop_after_step = Some(switch + 1);
     assert_eq!(
         run(inputs, &cfg, &resumed, &stop, &dev).unwrap(),
-        Outcome::Stopped { step: 2 }
+        Outcome::Stopped { step: switch + 1 }
     );
     let Outcome::Done(r2) = run(inputs, &cfg, &resumed, &StageControl::default(), &dev).unwrap()
     else {
         panic!("the resumed run finishes");
     };
-    assert_eq!(r2.resumed_from, 2);
+    assert_eq!(r2.resumed_from, switch + 1);
     assert_eq!(r2.loss_log, report.loss_log);
-    assert_eq!(
-        std::fs::read(full.join("decoder.safetensors")).unwrap(),
-        std::fs::read(resumed.join("decoder.safetensors")).unwrap()
-    );
+    for f in ["decoder.safetensors", "adain_decoder.safetensors"] {
+        assert_eq!(
+            read(&full, f),
+            read(&resumed, f),
+            "{f} differs after resuming"
+        );
+    }
 }

@@ -248,7 +248,11 @@ fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
             assert!(m.short_range.rmse.is_finite() && m.style_loss.is_finite());
         }
     }
-    assert!(out.join("eval.md").exists() && out.join("metrics.json").exists());
+    let photoreal = report.photoreal.expect("evaluation includes the reference");
+    assert!(photoreal.short_range.pairs > 0 && photoreal.long_range.rmse.is_finite());
+    let eval_md = std::fs::read_to_string(out.join("eval.md")).unwrap();
+    assert!(eval_md.contains("NeRF, unstylized (reference)"));
+    assert!(out.join("metrics.json").exists());
     // The blend is neither of its styles.
     let read = |s: &str| {
         image::open(out.join(s).join("frames/frame_0001.png"))

@@ -55,6 +55,7 @@ async fn runs_all_five_stages_and_stores_their_artifacts() {
         "nerf_pretrain/metrics.json",
         "render_views/cameras.json",
         "decoder_pretrain/decoder.safetensors",
+        "decoder_pretrain/adain_decoder.safetensors",
         "decoder_pretrain/vae.safetensors",
         "decoder_pretrain/styles.json",
         "decoder_pretrain/manifest.json",

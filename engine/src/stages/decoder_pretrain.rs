@@ -2,6 +2,12 @@
 //! content, style and geometric consistency losses, L = L_c + λ_s L_s + λ_co L_co, then train
 //! the style VAE and record each style's latent distribution.
 //!
+//! The first `consistency_from` of the steps train plain AdaIN (λ_co = 0): that decoder is
+//! kept as `adain_decoder.safetensors`, the frame-by-frame AdaIN baseline of the evaluation
+//! (the paper's baseline is AdaIN without any consistency training); the remaining steps add
+//! L_co, as the paper fine-tunes a pretrained AdaIN decoder. With a pretrained `--decoder`,
+//! `consistency_from = 0` makes that decoder the baseline.
+//!
 //! Each step takes one style, a pair of neighbouring views (i, j) and a `patch`² window of
 //! view i with the window of view j that shows the same part of the scene
 //! ([`Window::follow`]); it stylizes both windows as one batch (AdaIN with the whole views'
@@ -9,9 +15,10 @@
 //! warps with view i's rendered depth and both cameras (see [`crate::warp`]); pixels whose
 //! rendered opacity is below `min_opacity` have no depth. Views are cropped to multiples of 8.
 //!
-//! Output folder: `decoder.safetensors`, `vae.safetensors`, `styles.json` (per style: name, μ,
-//! σ, plus how the style features were computed), `sheets/style-<k>.png` (rows of content |
-//! style | output), `metrics.json` (written last), and `ckpt/` (decoder + Adam moments + RNG).
+//! Output folder: `decoder.safetensors`, `adain_decoder.safetensors`, `vae.safetensors`,
+//! `styles.json` (per style: name, μ, σ, plus how the style features were computed),
+//! `sheets/style-<k>.png` (rows of content | style | output), `metrics.json` (written last),
+//! and `ckpt/` (decoder + Adam moments + RNG, and the baseline's weights once L_co is on).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -51,6 +58,11 @@ pub struct DecoderPretrainConfig {
     pub style_weight: f64,
     /// λ_co (0 disables the consistency loss).
     pub consistency_weight: f64,
+    /// Fraction of the steps trained as plain AdaIN before L_co is switched on; the decoder
+    /// at that point is the evaluation's AdaIN baseline (`adain_decoder.safetensors`).
+    pub consistency_from: f64,
+    /// The final evaluation pairs every `eval_stride`-th view with its nearest neighbour.
+    pub eval_stride: usize,
     /// Each view is paired with one of its this many nearest views (by camera centre).
     pub neighbours: usize,
     /// Pixels rendered less opaque than this have no depth for warping.
@@ -81,6 +93,8 @@ impl DecoderPretrainConfig {
             lr: 5e-4,
             style_weight: 1.0,
             consistency_weight: 1000.0,
+            consistency_from: 0.5,
+            eval_stride: 4,
             neighbours: 2,
             min_opacity: 0.5,
             warp: WarpTolerance {
@@ -98,6 +112,7 @@ impl DecoderPretrainConfig {
             Preset::Tiny => Self {
                 steps: 4,
                 patch: 16,
+                eval_stride: 1,
                 style_size: 32,
                 vae: VaeConfig {
                     hidden: 32,
@@ -164,7 +179,7 @@ pub struct DecoderPretrainReport {
     pub train_seconds: f64,
     pub loss_log: Vec<LossRecord>,
     /// Masked MSE between each stylized view and its warped stylized neighbour (evaluation
-    /// pairs: every view with its nearest neighbour, every style).
+    /// pairs: every `eval_stride`-th view with its nearest neighbour, every style).
     pub consistency_mse: f64,
     /// Mean style loss of the stylized views (style fidelity).
     pub style_loss: f64,
@@ -389,8 +404,17 @@ pub fn run(
     let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
     let mut rng = Rng::new(cfg.seed);
     let (mut start, mut loss_log, mut seconds_before) = (0, Vec::new(), 0.0);
+    let switch = (cfg.steps as f64 * cfg.consistency_from.clamp(0.0, 1.0)).round() as u64;
+    // The plain-AdaIN decoder, copied when L_co switches on (checkpointed from then on).
+    let mut adain_weights: Option<HashMap<String, Tensor>> = None;
     if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
         net.decoder.set_tensors(&c.tensors)?;
+        let saved: HashMap<String, Tensor> = c
+            .tensors
+            .iter()
+            .filter_map(|(k, t)| Some((k.strip_prefix(ADAIN_PREFIX)?.to_string(), t.clone())))
+            .collect();
+        adain_weights = (!saved.is_empty()).then_some(saved);
         adam.load_state(&c.tensors, c.meta.step)?;
         (start, rng, loss_log, seconds_before) = (
             c.meta.step,
@@ -403,6 +427,14 @@ pub fn run(
     let started = Instant::now();
     let mut last_ckpt = Instant::now();
     for step in start..cfg.steps {
+        if step >= switch && adain_weights.is_none() {
+            adain_weights = Some(copy_weights(&net.decoder)?);
+        }
+        let consistency_weight = if step >= switch {
+            cfg.consistency_weight
+        } else {
+            0.0
+        };
         let s = rng.below(styles.len());
         let i = rng.below(views.len());
         let j = pairs[i][rng.below(pairs[i].len())];
@@ -414,7 +446,7 @@ pub fn run(
             &views.views[j].camera,
         );
         let (lc, ls, lco, _) = pair_losses(&net, &mut cache, &targets[s], (i, wi), (j, wj))?;
-        let total = ((&lc + (&ls * cfg.style_weight)?)? + (&lco * cfg.consistency_weight)?)?;
+        let total = ((&lc + (&ls * cfg.style_weight)?)? + (&lco * consistency_weight)?)?;
         adam.step(&total.backward()?, cfg.lr)?;
         let done = step + 1;
         let rec = LossRecord {
@@ -441,6 +473,12 @@ pub fn run(
         if done < cfg.steps && (stop || control.checkpoint_due(done, last_ckpt)) {
             let mut tensors = net.decoder.tensors();
             tensors.extend(adam.state());
+            if let Some(w) = &adain_weights {
+                tensors.extend(
+                    w.iter()
+                        .map(|(k, t)| (format!("{ADAIN_PREFIX}{k}"), t.clone())),
+                );
+            }
             let meta = CheckpointMeta {
                 step: done,
                 rng,
@@ -462,12 +500,18 @@ pub fn run(
     std::fs::create_dir_all(out.join("sheets")).map_err(|e| EngineError::io(out, e))?;
     net.decoder
         .save(&out.join("decoder.safetensors"), net.encoder.source())?;
+    let adain_decoder = Decoder::new(encoder.arch, cfg.seed, device)?;
+    adain_decoder.set_tensors(&match adain_weights {
+        Some(w) => w,
+        None => copy_weights(&net.decoder)?,
+    })?;
+    adain_decoder.save(&out.join("adain_decoder.safetensors"), net.encoder.source())?;
 
-    // Evaluation: every view with its nearest neighbour, every style.
+    // Evaluation: every `eval_stride`-th view with its nearest neighbour, every style.
     let (mut co, mut st, mut n) = (0.0, 0.0, 0.0);
     for (k, target) in targets.iter().enumerate() {
         let mut rows = Vec::new();
-        for (i, nb) in pairs.iter().enumerate() {
+        for (i, nb) in pairs.iter().enumerate().step_by(cfg.eval_stride.max(1)) {
             let full = Window::full(width, height);
             let (_, ls, lco, o) = pair_losses(&net, &mut cache, target, (i, full), (nb[0], full))?;
             co += lco.to_scalar::<f32>()? as f64;
@@ -534,6 +578,19 @@ pub fn run(
     };
     write_json_atomic(&out.join("metrics.json"), &report)?;
     Ok(Outcome::Done(report))
+}
+
+/// Checkpoint tensor-name prefix of the plain-AdaIN decoder's weights.
+const ADAIN_PREFIX: &str = "adain.";
+
+/// A copy of the decoder's weights (a [`candle_core::Var`] is updated in place, so the
+/// tensors must not share its storage).
+fn copy_weights(decoder: &Decoder) -> Result<HashMap<String, Tensor>> {
+    decoder
+        .tensors()
+        .into_iter()
+        .map(|(k, t)| Ok((k, t.copy()?)))
+        .collect()
 }
 
 /// Writes rows of content | style | output (each `[1, 3, H, W]` / `[3, H, W]`), the style

@@ -60,7 +60,9 @@ pub struct MutualConfig {
     pub latent_weight: f64,
     /// λ_s.
     pub style_weight: f64,
-    /// λ_m.
+    /// λ_m. The paper's 10 is relative to its loss scale; with this project's normalised
+    /// encoder the style and content losses are 10–100× larger (see docs/STYLE2D.md), so the
+    /// default is 100: L_mimic then weighs on the decoder as L_co does in `decoder_pretrain`.
     pub mimic_weight: f64,
     /// Weight of a style loss on the stylized NeRF's own window (0: mimicry only). L_mimic
     /// alone pulls the NeRF towards the average of the decoder's view-inconsistent outputs,
@@ -81,13 +83,13 @@ pub struct MutualConfig {
 impl MutualConfig {
     pub fn preset(preset: Preset) -> Self {
         let base = Self {
-            steps: 400,
+            steps: 300,
             patch: 64,
             lr: 2e-3,
             decoder_lr: 1e-4,
             latent_weight: 1e-4,
             style_weight: 1.0,
-            mimic_weight: 10.0,
+            mimic_weight: 100.0,
             nerf_style_weight: 0.005,
             decoder_freeze: 0.4,
             finetune_decoder: true,

@@ -103,7 +103,7 @@ impl NerfConfig {
             Preset::Quick => base(
                 field(grid(16, 16, 16.0, 512.0), 64, 64),
                 sampling(384, 512),
-                500,
+                400,
                 8192,
                 1 << 17,
             ),

@@ -5,8 +5,9 @@
 //! methods blend the AdaIN targets' statistics the same way). For every style spec the stage
 //! writes, under `<spec>/`: `frames/frame_NNNN.png`, `animation.gif` (and `animation.mp4` when
 //! `ffmpeg` is on PATH), `sheet.png` (rows of style | NeRF→AdaIN | stylized NeRF for a few
-//! views). With evaluation on (the default), it also renders the path with (a) the pretrained
-//! decoder frame by frame (the paper's NeRF→AdaIN baseline) and (b) the mutually fine-tuned
+//! views). With evaluation on (the default), it also renders the path with (a) the plain-AdaIN
+//! decoder of `decoder_pretrain` (trained without L_co) frame by frame (the paper's
+//! NeRF→AdaIN baseline) and (b) the mutually fine-tuned
 //! decoder, and reports for (a), (b) and (c) the stylized NeRF the warped consistency errors
 //! and the style/content losses ([`crate::eval`]): `metrics.json` and `eval.md` (written last).
 //!
@@ -20,7 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
 use crate::checkpoint::write_json_atomic;
-use crate::eval::{fidelity, warped_error, GapError, Sequence};
+use crate::eval::{fidelity, GapError, PathWarps};
 use crate::field::saved;
 use crate::image_io;
 use crate::preset::Preset;
@@ -113,10 +114,20 @@ pub struct SpecReport {
     pub methods: Vec<MethodScores>,
 }
 
+/// Consistency of the unstylized NeRF rendering along the same path: the floor that
+/// resampling, occlusion edges and view-dependent colour leave for any rendering of this scene.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PhotorealScores {
+    pub short_range: GapError,
+    pub long_range: GapError,
+}
+
 /// The stage's metrics.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RenderStylizedReport {
     pub specs: Vec<SpecReport>,
+    /// Present with evaluation.
+    pub photoreal: Option<PhotorealScores>,
     pub seconds: f64,
 }
 
@@ -126,7 +137,7 @@ pub struct Inputs<'a> {
     pub field_dir: &'a Path,
     /// The `render_views` output (its path views are the default camera path).
     pub views: &'a RenderedViews,
-    /// The `decoder_pretrain` output folder (the baseline decoder).
+    /// The `decoder_pretrain` output folder (`adain_decoder.safetensors`: the baseline).
     pub decoder_dir: &'a Path,
     /// The `mutual_learning` output folder.
     pub mutual_dir: &'a Path,
@@ -360,7 +371,11 @@ pub fn run(
     let latents = LatentCodes::load(&inputs.mutual_dir.join("latents.safetensors"), device)?;
     let encoder = VggEncoder::new(inputs.encoder, device)?;
     let finetuned = Decoder::load(&inputs.mutual_dir.join("decoder.safetensors"), device)?.0;
-    let baseline = Decoder::load(&inputs.decoder_dir.join("decoder.safetensors"), device)?.0;
+    let baseline = Decoder::load(
+        &inputs.decoder_dir.join("adain_decoder.safetensors"),
+        device,
+    )?
+    .0;
     let style_tensors = inputs
         .styles
         .iter()
@@ -383,6 +398,13 @@ pub fn run(
     let warp_cfg = WarpConfig {
         rel_tolerance: cfg.rel_tolerance,
     };
+    // The path's warps at both gaps, shared by every method and style.
+    let warps = if cfg.eval {
+        let along = |gap| PathWarps::new(&path.cameras, &path.depths, gap, warp_cfg, device);
+        Some((along(cfg.short_gap)?, along(cfg.long_gap)?))
+    } else {
+        None
+    };
     let total = (specs.len() * path.cameras.len()) as u64;
     let mut reports = Vec::new();
     for (si, blend) in specs.iter().enumerate() {
@@ -395,7 +417,9 @@ pub fn run(
             if control.is_cancelled() {
                 return Err(EngineError::Cancelled);
             }
-            let rgb = module.render(&surface.all(device)?, &latent)?;
+            // Detached: a frame kept with its graph would hold every activation of the
+            // style module (about 100 MB per frame at 128²).
+            let rgb = module.render(&surface.all(device)?, &latent)?.detach();
             let frame = rgb
                 .t()?
                 .reshape((3, path.height, path.width))?
@@ -419,6 +443,7 @@ pub fn run(
                 .map(|f| {
                     Ok(decoder
                         .forward(&adain(f, &target.stats[3], 1.0)?)?
+                        .detach()
                         .squeeze(0)?
                         .clamp(0f32, 1f32)?)
                 })
@@ -439,18 +464,13 @@ pub fn run(
             cfg.sheet_rows,
         )?;
         let mut methods = Vec::new();
-        if cfg.eval {
+        if let Some((short, long)) = &warps {
             let finetuned_frames = decode(&finetuned)?;
             for (method, frames) in [
                 ("NeRF -> AdaIN", &adain_frames),
                 ("NeRF -> fine-tuned decoder", &finetuned_frames),
                 ("stylized NeRF", &stylized),
             ] {
-                let seq = Sequence {
-                    frames,
-                    cameras: &path.cameras,
-                    depths: &path.depths,
-                };
                 let every = |v: &[Tensor]| -> Vec<Tensor> {
                     v.iter()
                         .step_by(cfg.fidelity_stride.max(1))
@@ -458,11 +478,11 @@ pub fn run(
                         .collect()
                 };
                 let (style_loss, content_loss) =
-                    fidelity(&encoder, &every(frames), &every(&path.photoreal), &target)?;
+                    fidelity(&encoder, &every(frames), &every(&features), &target)?;
                 methods.push(MethodScores {
                     method: method.into(),
-                    short_range: warped_error(&seq, cfg.short_gap, warp_cfg, device)?,
-                    long_range: warped_error(&seq, cfg.long_gap, warp_cfg, device)?,
+                    short_range: short.error(frames)?,
+                    long_range: long.error(frames)?,
                     style_loss,
                     content_loss,
                 });
@@ -475,8 +495,16 @@ pub fn run(
             methods,
         });
     }
+    let photoreal = match &warps {
+        Some((short, long)) => Some(PhotorealScores {
+            short_range: short.error(&path.photoreal)?,
+            long_range: long.error(&path.photoreal)?,
+        }),
+        None => None,
+    };
     let report = RenderStylizedReport {
         specs: reports,
+        photoreal,
         seconds: started.elapsed().as_secs_f64(),
     };
     if cfg.eval {
@@ -490,7 +518,8 @@ pub fn run(
 }
 
 /// The evaluation as a Markdown table in the paper's layout: one row per method and style,
-/// short- and long-range consistency (RMSE, MAE), style and content loss.
+/// short- and long-range consistency (RMSE, MAE), style and content loss, then the
+/// unstylized rendering's consistency as a reference row.
 pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig) -> String {
     let mut s = format!(
         "| style | method | short-range RMSE (gap {}) | short MAE | long-range RMSE (gap {}) | long MAE | style loss | content loss |\n|---|---|---|---|---|---|---|---|\n",
@@ -510,6 +539,12 @@ pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig)
                 m.content_loss
             );
         }
+    }
+    if let Some(p) = &report.photoreal {
+        s += &format!(
+            "| (none) | NeRF, unstylized (reference) | {:.4} | {:.4} | {:.4} | {:.4} | | |\n",
+            p.short_range.rmse, p.short_range.mae, p.long_range.rmse, p.long_range.mae
+        );
     }
     s
 }
