@@ -427,10 +427,11 @@ pub fn run(
     let started = Instant::now();
     let mut last_ckpt = Instant::now();
     for step in start..cfg.steps {
-        if step >= switch && adain_weights.is_none() {
+        let consistency_on = step >= switch;
+        if consistency_on && adain_weights.is_none() {
             adain_weights = Some(copy_weights(&net.decoder)?);
         }
-        let consistency_weight = if step >= switch {
+        let consistency_weight = if consistency_on {
             cfg.consistency_weight
         } else {
             0.0
