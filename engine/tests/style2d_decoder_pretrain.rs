@@ -150,3 +150,39 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
         );
     }
 }
+
+#[test]
+fn bad_schedule_settings_are_config_errors_naming_the_field() {
+    let tmp = tempfile::tempdir().unwrap();
+    let views = views(&tmp.path().join("scene"));
+    let enc = EncoderWeights::bundled().unwrap();
+    let styles = styles();
+    let inputs = Inputs {
+        views: &views,
+        styles: &styles,
+        encoder: &enc,
+        init_decoder: None,
+    };
+    let base = DecoderPretrainConfig::preset(Preset::Tiny);
+    for (cfg, field) in [
+        (
+            DecoderPretrainConfig {
+                consistency_from: 1.5,
+                ..base.clone()
+            },
+            "decoder_pretrain.consistency_from",
+        ),
+        (
+            DecoderPretrainConfig {
+                eval_stride: 0,
+                ..base.clone()
+            },
+            "decoder_pretrain.eval_stride",
+        ),
+    ] {
+        let out = tmp.path().join("out");
+        let err = run(inputs, &cfg, &out, &StageControl::default(), &Device::Cpu).unwrap_err();
+        assert!(err.to_string().contains(field), "{err}");
+        assert!(!out.join("decoder.safetensors").exists());
+    }
+}

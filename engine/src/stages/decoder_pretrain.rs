@@ -364,6 +364,21 @@ pub fn run(
             "at least two rendered views are needed",
         ));
     }
+    if !(0.0..=1.0).contains(&cfg.consistency_from) {
+        return Err(EngineError::config(
+            "decoder_pretrain.consistency_from",
+            format!(
+                "a fraction of the steps in [0, 1], got {}",
+                cfg.consistency_from
+            ),
+        ));
+    }
+    if cfg.eval_stride == 0 {
+        return Err(EngineError::config(
+            "decoder_pretrain.eval_stride",
+            "must be at least 1",
+        ));
+    }
     let views = crop_views(views)?;
     let decoder = match init_decoder {
         Some(p) => Decoder::load(p, device)?.0,
@@ -404,7 +419,7 @@ pub fn run(
     let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
     let mut rng = Rng::new(cfg.seed);
     let (mut start, mut loss_log, mut seconds_before) = (0, Vec::new(), 0.0);
-    let switch = (cfg.steps as f64 * cfg.consistency_from.clamp(0.0, 1.0)).round() as u64;
+    let switch = (cfg.steps as f64 * cfg.consistency_from).round() as u64;
     // The plain-AdaIN decoder, copied when L_co switches on (checkpointed from then on).
     let mut adain_weights: Option<HashMap<String, Tensor>> = None;
     if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
@@ -512,7 +527,7 @@ pub fn run(
     let (mut co, mut st, mut n) = (0.0, 0.0, 0.0);
     for (k, target) in targets.iter().enumerate() {
         let mut rows = Vec::new();
-        for (i, nb) in pairs.iter().enumerate().step_by(cfg.eval_stride.max(1)) {
+        for (i, nb) in pairs.iter().enumerate().step_by(cfg.eval_stride) {
             let full = Window::full(width, height);
             let (_, ls, lco, o) = pair_losses(&net, &mut cache, target, (i, full), (nb[0], full))?;
             co += lco.to_scalar::<f32>()? as f64;
