@@ -10,6 +10,7 @@ pub mod error;
 pub mod eval;
 pub mod field;
 pub mod image_io;
+pub mod malloc;
 pub mod optim;
 pub mod preset;
 pub mod render;

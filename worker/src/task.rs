@@ -189,7 +189,13 @@ impl TaskContext {
             self.out.clone(),
         );
         let ckpt = self.out.join("ckpt");
-        let joined = tokio::task::spawn_blocking(move || f(&control, &device, &out)).await;
+        let joined = tokio::task::spawn_blocking(move || {
+            let outcome = f(&control, &device, &out);
+            // The stage's tensors are gone: give their memory back while the worker idles.
+            stylenerf_engine::malloc::release_free_memory();
+            outcome
+        })
+        .await;
         match joined {
             Ok(Ok(outcome)) => Ok(outcome),
             Ok(Err(EngineError::Cancelled)) => Ok(Outcome::Stopped {

@@ -1,0 +1,43 @@
+//! Process-wide tuning of the C allocator for tensor workloads (glibc on Linux; a no-op
+//! elsewhere).
+//!
+//! candle allocates a new buffer for every op's result, many of them megabytes. glibc serves
+//! large requests with fresh `mmap`s and gives freed memory back to the kernel, so every op
+//! paid page faults to map and zero its output, copy-on-write faults with TLB-flush
+//! interrupts to the other core, and `munmap`s: measured on a 2-core machine, a quarter of the
+//! NeRF stage's wall time was spent in the kernel (see docs/BENCHMARKS.md, "Allocator"). Here
+//! requests up to 32 MiB come from the heap, and freed memory is kept for reuse instead of
+//! being trimmed; [`release_free_memory`] hands it back when a long-lived process (the
+//! worker) finishes a task.
+
+/// Largest request served from the heap (glibc's maximum for this setting).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+const MMAP_THRESHOLD: libc::c_int = 32 << 20;
+
+/// Set to `off` to keep glibc's defaults (for comparisons, or a machine short of memory).
+pub const SWITCH_ENV: &str = "STYLENERF_MALLOC_TUNING";
+
+/// Call once, early in `main`. Does nothing when [`SWITCH_ENV`] is `off`.
+pub fn keep_freed_memory() {
+    if std::env::var(SWITCH_ENV).is_ok_and(|v| v == "off") {
+        return;
+    }
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; glibc documents these three as safe to
+    // change at any time.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, libc::c_int::MAX);
+        libc::mallopt(libc::M_TOP_PAD, 256 << 20);
+    }
+}
+
+/// Returns the memory freed since the last call to the kernel (after a stage, so an idle
+/// worker does not hold a stage's peak).
+pub fn release_free_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only releases free memory.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
