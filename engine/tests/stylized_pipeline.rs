@@ -262,4 +262,46 @@ fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
     let (a, b, mix) = (read("mosaic"), read("waves"), read("mosaic-0.5_waves-0.5"));
     assert_ne!(mix.as_raw(), a.as_raw());
     assert_ne!(mix.as_raw(), b.as_raw());
+
+    // A camera path given by the caller (a render job's path) gets its depth from the frozen
+    // density. The path's own cameras must then give the same stylized frames and about the
+    // same unstylized consistency as the rendered views' depth does.
+    let cameras: Vec<_> = u
+        .views
+        .path_indices()
+        .iter()
+        .map(|&i| u.views.views[i].camera)
+        .collect();
+    let given_out = u.root.join("stylized-given-path");
+    let given = done(
+        render_stylized::run(
+            render_stylized::Inputs {
+                field_dir: &u.root.join("nerf"),
+                views: &u.views,
+                decoder_dir: &u.root.join("decoder"),
+                mutual_dir: &mutual_dir,
+                styles: &u.styles,
+                encoder: &u.encoder,
+                path: Some(&cameras),
+            },
+            &RenderStylizedConfig {
+                styles: vec!["waves".into()],
+                ..cfg
+            },
+            &given_out,
+            &StageControl::default(),
+            &Device::Cpu,
+        )
+        .unwrap(),
+    );
+    assert_eq!(given.specs[0].frames, frames);
+    let frame = |dir: &Path| image::open(dir.join("waves/frames/frame_0001.png")).unwrap();
+    assert_eq!(frame(&given_out).as_bytes(), frame(&out).as_bytes());
+    let given_photoreal = given.photoreal.expect("evaluation includes the reference");
+    assert!(given_photoreal.short_range.pairs > 0);
+    let (x, y) = (given_photoreal.short_range.rmse, photoreal.short_range.rmse);
+    assert!(
+        (x - y).abs() <= 0.25 * y,
+        "given path {x} vs rendered views {y}"
+    );
 }

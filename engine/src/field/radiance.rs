@@ -59,6 +59,18 @@ pub struct RadianceField {
 /// Largest raw density before the exponential (keeps σ finite in f32).
 const MAX_LOG_SIGMA: f64 = 15.0;
 
+/// Points per density-network pass of the gradient-free evaluations.
+const VALUE_CHUNK: usize = 65536;
+
+/// [`RadianceField::geometry_values`]: per point, its normalised position (3 values), σ and
+/// geometry features (`geometry_features` values), packed point after point.
+#[derive(Debug, Clone, Default)]
+pub struct GeometryValues {
+    pub points01: Vec<f32>,
+    pub sigma: Vec<f32>,
+    pub geometry: Vec<f32>,
+}
+
 impl RadianceField {
     pub fn new(config: FieldConfig, aabb: Aabb, rng: &mut Rng, device: &Device) -> Result<Self> {
         let grid = HashGrid::new(config.grid, rng, device)?;
@@ -139,9 +151,30 @@ impl RadianceField {
     /// σ at packed field-space positions, without gradients (occupancy updates, pruning).
     pub fn density_values(&self, positions: &[f32]) -> Result<Vec<f32>> {
         let mut out = Vec::with_capacity(positions.len() / 3);
-        for chunk in positions.chunks(3 * 65536) {
+        for chunk in positions.chunks(3 * VALUE_CHUNK) {
             let (sigma, _) = self.geometry(&self.points01(chunk)?)?;
             out.extend(sigma.detach().to_vec1::<f32>()?);
+        }
+        Ok(out)
+    }
+
+    /// Normalised positions, σ and geometry features at packed field-space positions, without
+    /// gradients: what a cache of the frozen density keeps.
+    pub fn geometry_values(&self, positions: &[f32]) -> Result<GeometryValues> {
+        let n = positions.len() / 3;
+        let mut out = GeometryValues {
+            points01: Vec::with_capacity(3 * n),
+            sigma: Vec::with_capacity(n),
+            geometry: Vec::with_capacity(n * self.config.geometry_features),
+        };
+        for chunk in positions.chunks(3 * VALUE_CHUNK) {
+            let points01 = self.points01(chunk)?;
+            let (sigma, geometry) = self.geometry(&points01)?;
+            out.points01
+                .extend(points01.flatten_all()?.to_vec1::<f32>()?);
+            out.sigma.extend(sigma.detach().to_vec1::<f32>()?);
+            out.geometry
+                .extend(geometry.detach().flatten_all()?.to_vec1::<f32>()?);
         }
         Ok(out)
     }

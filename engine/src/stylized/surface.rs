@@ -13,7 +13,7 @@ use candle_core::{Device, Tensor};
 use crate::camera::Camera;
 use crate::field::radiance::RadianceField;
 use crate::field::saved::FieldMeta;
-use crate::render::march::{early_stop_mask, march};
+use crate::render::march::march;
 use crate::render::step_size;
 use crate::Result;
 
@@ -84,35 +84,26 @@ impl SurfaceSamples {
                 meta.sampling.max_samples_per_ray,
                 None,
             );
-            let sigma = field.density_values(&marched.positions)?;
-            let keep = early_stop_mask(&marched, &sigma, meta.sampling.early_stop_eps);
-            let samples = marched.filter(&keep);
-            let sigma: Vec<f32> = sigma
-                .iter()
-                .zip(&keep)
-                .filter_map(|(s, k)| k.then_some(*s))
-                .collect();
-            if samples.ray.is_empty() {
-                // Every ray of the chunk misses the scene (candle cannot slice empty tensors).
-                let n = out.weights.len() as u32;
-                out.offsets.extend(std::iter::repeat_n(n, part.len()));
-                continue;
-            }
-            let points01 = field.points01(&samples.positions)?;
-            let (_, geometry) = field.geometry(&points01)?;
-            let geometry: Vec<f32> = geometry.detach().flatten_all()?.to_vec1()?;
-            let points01: Vec<f32> = points01.flatten_all()?.to_vec1()?;
-            for w in samples.packed.offsets.windows(2) {
+            // One pass of the density network over the marched samples gives σ for the
+            // weights and the geometry features of the samples that keep one.
+            let values = field.geometry_values(&marched.positions)?;
+            for w in marched.packed.offsets.windows(2) {
                 let mut transmittance = 1.0f32;
                 for k in w[0] as usize..w[1] as usize {
-                    let alpha = 1.0 - (-sigma[k] * samples.packed.deltas[k]).exp();
+                    if transmittance < MIN_WEIGHT {
+                        // Every later weight is below the transmittance, hence dropped.
+                        break;
+                    }
+                    let alpha = 1.0 - (-values.sigma[k] * marched.packed.deltas[k]).exp();
                     let weight = transmittance * alpha;
                     transmittance *= 1.0 - alpha;
                     if weight >= MIN_WEIGHT {
                         out.weights.push(weight);
                         out.geometry
-                            .extend_from_slice(&geometry[k * g..(k + 1) * g]);
-                        out.points01.extend_from_slice(&points01[3 * k..3 * k + 3]);
+                            .extend_from_slice(&values.geometry[k * g..(k + 1) * g]);
+                        out.points01
+                            .extend_from_slice(&values.points01[3 * k..3 * k + 3]);
+                        out.depths.push(marched.packed.depths[k]);
                     }
                 }
                 out.offsets.push(out.weights.len() as u32);
