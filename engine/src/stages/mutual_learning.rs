@@ -35,7 +35,7 @@ use crate::stages::{Outcome, Progress, StageControl};
 use crate::style2d::adain::adain;
 use crate::style2d::arch::VggArch;
 use crate::style2d::decoder::Decoder;
-use crate::style2d::encoder::VggEncoder;
+use crate::style2d::encoder::{Features, VggEncoder};
 use crate::style2d::images::{hwc_to_tensor, StyleImage};
 use crate::style2d::losses::{content_loss, mse, style_loss};
 use crate::style2d::network::{AdaInNet, StyleTarget};
@@ -393,33 +393,67 @@ pub fn run(
         let c_nerf = module.render(&batch, &code)?;
         let train_decoder = step >= freeze_until;
         let target = adain(&data.features[v], &targets[s].stats[3], 1.0)?;
-        let (c_2d, decoder_terms) = if train_decoder {
-            // Decode the window's part of the AdaIN target (statistics of the whole view).
+        // The decoder's window: the window's part of the AdaIN target (statistics of the whole
+        // view) and its decoding, while the decoder learns.
+        let decoded = if train_decoder {
             let feat = window.crop(&target, VggArch::STRIDE)?;
             let o = net.decoder.forward(&feat)?;
-            let feats = net.encoder.features(&o)?;
-            let lc = content_loss(&feats[3], &feat)?;
-            let ls = style_loss(&feats, &targets[s].stats)?;
-            (pixel_rows(&o)?, Some((lc, ls)))
+            Some((feat, o))
         } else {
-            let rows = match frozen.entry((v, s)) {
-                std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-                std::collections::hash_map::Entry::Vacant(e) => {
-                    e.insert(pixel_rows(&net.decoder.forward(&target)?.detach())?)
-                }
-            };
-            (rows.index_select(&pixel_idx, 0)?, None)
+            None
+        };
+        let nerf_image = if cfg.nerf_style_weight > 0.0 {
+            Some(
+                c_nerf
+                    .reshape((1, window.height, window.width, 3))?
+                    .permute((0, 3, 1, 2))?
+                    .contiguous()?,
+            )
+        } else {
+            None
+        };
+        // One encoder pass over the NeRF's window and the decoder's output: the same features
+        // as two passes, with half the per-op overhead on these small images.
+        let images: Vec<&Tensor> = nerf_image
+            .iter()
+            .chain(decoded.iter().map(|(_, o)| o))
+            .collect();
+        let features = match images.len() {
+            0 => None,
+            _ => Some(net.encoder.features(&Tensor::cat(&images, 0)?)?),
+        };
+        let features_of = |k: usize| -> Result<Features> {
+            let f = features.as_ref().expect("an image was encoded");
+            Ok([
+                f[0].narrow(0, k, 1)?,
+                f[1].narrow(0, k, 1)?,
+                f[2].narrow(0, k, 1)?,
+                f[3].narrow(0, k, 1)?,
+            ])
+        };
+        let (c_2d, decoder_terms) = match &decoded {
+            Some((feat, o)) => {
+                let feats = features_of(usize::from(nerf_image.is_some()))?;
+                let lc = content_loss(&feats[3], feat)?;
+                let ls = style_loss(&feats, &targets[s].stats)?;
+                (pixel_rows(o)?, Some((lc, ls)))
+            }
+            None => {
+                let rows = match frozen.entry((v, s)) {
+                    std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+                    std::collections::hash_map::Entry::Vacant(e) => {
+                        e.insert(pixel_rows(&net.decoder.forward(&target)?.detach())?)
+                    }
+                };
+                (rows.index_select(&pixel_idx, 0)?, None)
+            }
         };
         let mimic_nerf = mse(&c_nerf, &c_2d.detach())?;
         let nll = latents.nll(v, s)?;
         let mut total = (&mimic_nerf + (&nll * cfg.latent_weight)?)?;
         let mut nerf_style = 0.0;
-        if cfg.nerf_style_weight > 0.0 {
-            let img = c_nerf
-                .reshape((1, window.height, window.width, 3))?
-                .permute((0, 3, 1, 2))?
-                .contiguous()?;
-            let ls = style_loss(&net.encoder.features(&img)?, &targets[s].stats)?;
+        if nerf_image.is_some() {
+            let ls = style_loss(&features_of(0)?, &targets[s].stats)?;
             nerf_style = ls.to_scalar::<f32>()?;
             total = (total + (ls * cfg.nerf_style_weight)?)?;
         }
