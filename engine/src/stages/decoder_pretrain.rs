@@ -94,7 +94,7 @@ impl DecoderPretrainConfig {
             style_weight: 1.0,
             consistency_weight: 1000.0,
             consistency_from: 0.5,
-            eval_stride: 4,
+            eval_stride: 8,
             neighbours: 2,
             min_opacity: 0.5,
             warp: WarpTolerance {

@@ -66,7 +66,8 @@ pub struct MutualConfig {
     pub mimic_weight: f64,
     /// Weight of a style loss on the stylized NeRF's own window (0: mimicry only). L_mimic
     /// alone pulls the NeRF towards the average of the decoder's view-inconsistent outputs,
-    /// which is flatter than any of them; this term keeps the NeRF's window stylized.
+    /// which is flatter than any of them; this term keeps the NeRF's window stylized. Larger
+    /// weights paint finer, more saturated texture and cost consistency (docs/STYLIZED.md).
     pub nerf_style_weight: f64,
     /// Fraction of the steps during which the decoder is frozen.
     pub decoder_freeze: f64,
@@ -90,7 +91,7 @@ impl MutualConfig {
             latent_weight: 1e-4,
             style_weight: 1.0,
             mimic_weight: 100.0,
-            nerf_style_weight: 0.005,
+            nerf_style_weight: 0.001,
             decoder_freeze: 0.4,
             finetune_decoder: true,
             learnable_latents: true,
