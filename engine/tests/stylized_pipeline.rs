@@ -8,13 +8,14 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use candle_core::Device;
+use stylenerf_engine::camera::Camera;
 use stylenerf_engine::preset::Preset;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::decoder_pretrain::{self, DecoderPretrainConfig};
 use stylenerf_engine::stages::mutual_learning::{self, MutualConfig, MutualReport};
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
-use stylenerf_engine::stages::render_stylized::{self, RenderStylizedConfig};
+use stylenerf_engine::stages::render_stylized::{self, RenderStylizedConfig, RenderStylizedReport};
 use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
 use stylenerf_engine::stages::{Outcome, StageControl};
 use stylenerf_engine::style2d::images::StyleImage;
@@ -195,6 +196,34 @@ fn mutual_learning_fits_the_decoder_and_resumes_exactly() {
     assert_eq!(frozen.decoder_change, 0.0);
 }
 
+/// Runs `render_stylized` on the shared upstream outputs and `mutual_dir`.
+fn render(
+    mutual_dir: &Path,
+    path: Option<&[Camera]>,
+    cfg: &RenderStylizedConfig,
+    out: &Path,
+) -> RenderStylizedReport {
+    let u = upstream();
+    done(
+        render_stylized::run(
+            render_stylized::Inputs {
+                field_dir: &u.root.join("nerf"),
+                views: &u.views,
+                decoder_dir: &u.root.join("decoder"),
+                mutual_dir,
+                styles: &u.styles,
+                encoder: &u.encoder,
+                path,
+            },
+            cfg,
+            out,
+            &StageControl::default(),
+            &Device::Cpu,
+        )
+        .unwrap(),
+    )
+}
+
 #[test]
 fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
     let u = upstream();
@@ -216,24 +245,7 @@ fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
         ],
         ..RenderStylizedConfig::preset(Preset::Tiny)
     };
-    let report = done(
-        render_stylized::run(
-            render_stylized::Inputs {
-                field_dir: &u.root.join("nerf"),
-                views: &u.views,
-                decoder_dir: &u.root.join("decoder"),
-                mutual_dir: &mutual_dir,
-                styles: &u.styles,
-                encoder: &u.encoder,
-                path: None,
-            },
-            &cfg,
-            &out,
-            &StageControl::default(),
-            &Device::Cpu,
-        )
-        .unwrap(),
-    );
+    let report = render(&mutual_dir, None, &cfg, &out);
     let frames = u.views.path_indices().len();
     assert_eq!(report.specs.len(), 3);
     for spec in &report.specs {
@@ -273,26 +285,14 @@ fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
         .map(|&i| u.views.views[i].camera)
         .collect();
     let given_out = u.root.join("stylized-given-path");
-    let given = done(
-        render_stylized::run(
-            render_stylized::Inputs {
-                field_dir: &u.root.join("nerf"),
-                views: &u.views,
-                decoder_dir: &u.root.join("decoder"),
-                mutual_dir: &mutual_dir,
-                styles: &u.styles,
-                encoder: &u.encoder,
-                path: Some(&cameras),
-            },
-            &RenderStylizedConfig {
-                styles: vec!["waves".into()],
-                ..cfg
-            },
-            &given_out,
-            &StageControl::default(),
-            &Device::Cpu,
-        )
-        .unwrap(),
+    let given = render(
+        &mutual_dir,
+        Some(&cameras),
+        &RenderStylizedConfig {
+            styles: vec!["waves".into()],
+            ..cfg
+        },
+        &given_out,
     );
     assert_eq!(given.specs[0].frames, frames);
     let frame = |dir: &Path| image::open(dir.join("waves/frames/frame_0001.png")).unwrap();
