@@ -23,8 +23,8 @@ pub fn keep_freed_memory() {
         return;
     }
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only sets allocator parameters; glibc documents these three as safe to
-    // change at any time.
+    // SAFETY: mallopt only changes allocator parameters (under the allocator's own locks); no
+    // memory is touched.
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD);
         libc::mallopt(libc::M_TRIM_THRESHOLD, libc::c_int::MAX);
