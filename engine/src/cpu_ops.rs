@@ -1,4 +1,5 @@
-//! Helpers shared by the engine's fused CPU ops (candle `CustomOp`s).
+//! Helpers shared by the engine's fused CPU ops (candle `CustomOp`s): contiguous views of
+//! storage and a strided matrix product.
 
 use candle_core::{Layout, WithDType};
 
@@ -12,5 +13,67 @@ pub fn contiguous_slice<'a, T: WithDType>(
     match layout.contiguous_offsets() {
         Some((a, b)) => Ok(&data[a..b]),
         None => candle_core::bail!("{what} must be contiguous"),
+    }
+}
+
+/// Row-major matrix view: data, row stride, column stride (non-negative).
+pub type Mat<'a, T> = (&'a [T], isize, isize);
+
+/// Whether a `rows × cols` matrix with strides `(rs, cs)` lies inside a slice of `len`.
+fn fits(len: usize, rows: usize, cols: usize, rs: isize, cs: isize) -> bool {
+    rows == 0
+        || cols == 0
+        || (rs >= 0 && cs >= 0 && ((rows - 1) * rs as usize + (cols - 1) * cs as usize) < len)
+}
+
+/// dst[m, n] = (accumulate ? dst : 0) + a[m, k] · b[k, n]; `dst` is row-major with row
+/// stride `dst.1` (≥ n), so a product can fill a band of a wider matrix. gemm runs on the
+/// rayon pool when the product is large enough to pay for it.
+pub fn matmul<T: WithDType>(
+    m: usize,
+    n: usize,
+    k: usize,
+    dst: (&mut [T], usize),
+    a: Mat<T>,
+    b: Mat<T>,
+    accumulate: bool,
+) {
+    let (dst, dst_rs) = dst;
+    assert!(
+        dst_rs >= n
+            && fits(dst.len(), m, n, dst_rs as isize, 1)
+            && fits(a.0.len(), m, k, a.1, a.2)
+            && fits(b.0.len(), k, n, b.1, b.2),
+        "matmul: operands too small for {m}×{k} · {k}×{n}"
+    );
+    let parallelism = if m * n * k > 1 << 16 {
+        gemm::Parallelism::Rayon(rayon::current_num_threads())
+    } else {
+        gemm::Parallelism::None
+    };
+    // SAFETY: the assertion above checks that every strided extent lies inside its slice,
+    // and `dst` is borrowed mutably, so it aliases neither operand.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            dst_rs as isize,
+            accumulate,
+            a.0.as_ptr(),
+            a.2,
+            a.1,
+            b.0.as_ptr(),
+            b.2,
+            b.1,
+            T::one(),
+            T::one(),
+            false,
+            false,
+            false,
+            parallelism,
+        )
     }
 }

@@ -1,6 +1,7 @@
 //! `stylenerf bench vgg`: timing of the frozen VGG encoder — forward to relu4_1 and
-//! forward + backward to the input image — at 128² and 256², with the frozen convolution
-//! (input gradient only) against candle's plain conv2d (which also computes kernel gradients).
+//! forward + backward to the input image — at 128² and 256², with the engine's convolution
+//! (row-wise im2col, input gradient only for frozen weights) against candle's conv2d (tiled
+//! im2col; it also computes the kernel gradients).
 
 use std::time::Instant;
 
@@ -37,8 +38,8 @@ fn median_secs(reps: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow
 pub fn run(a: BenchVggArgs) -> anyhow::Result<()> {
     let dev = Device::Cpu;
     let weights = EncoderWeights::load_or_bundled(a.encoder.as_deref())?;
-    let frozen = VggEncoder::new(&weights, &dev)?;
-    let plain = frozen.clone().with_conv_path(ConvPath::Plain);
+    let engine = VggEncoder::new(&weights, &dev)?;
+    let candle = engine.clone().with_conv_path(ConvPath::Candle);
     println!(
         "encoder {} ({}), {} threads, median of {}",
         weights.arch.name(),
@@ -47,13 +48,13 @@ pub fn run(a: BenchVggArgs) -> anyhow::Result<()> {
         a.reps
     );
     println!(
-        "| size | forward (s) | fwd+bwd plain conv2d (s) | fwd+bwd frozen conv (s) | speed-up |"
+        "| size | forward, candle (s) | forward, engine (s) | speed-up | fwd+bwd, candle (s) | fwd+bwd, engine (s) | speed-up |"
     );
-    println!("|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     for &s in &a.sizes {
         let x = Tensor::rand(0f32, 1.0, (1, 3, s, s), &dev)?;
         let var = Var::from_tensor(&x)?;
-        let fwd = median_secs(a.reps, || Ok(frozen.relu4_1(&x).map(drop)?))?;
+        let fwd = |enc: &VggEncoder| median_secs(a.reps, || Ok(enc.relu4_1(&x).map(drop)?));
         let fb = |enc: &VggEncoder| {
             median_secs(a.reps, || {
                 let g = enc
@@ -68,8 +69,13 @@ pub fn run(a: BenchVggArgs) -> anyhow::Result<()> {
                 Ok(())
             })
         };
-        let (tp, tf) = (fb(&plain)?, fb(&frozen)?);
-        println!("| {s}² | {fwd:.3} | {tp:.3} | {tf:.3} | {:.2}× |", tp / tf);
+        let (fc, fe) = (fwd(&candle)?, fwd(&engine)?);
+        let (bc, be) = (fb(&candle)?, fb(&engine)?);
+        println!(
+            "| {s}² | {fc:.3} | {fe:.3} | {:.2}× | {bc:.3} | {be:.3} | {:.2}× |",
+            fc / fe,
+            bc / be
+        );
     }
     Ok(())
 }

@@ -16,7 +16,7 @@ use candle_core::{
     CpuStorage, CustomOp2, CustomOp3, DType, Device, Layout, Shape, Tensor, Var, WithDType,
 };
 
-use crate::cpu_ops::contiguous_slice;
+use crate::cpu_ops::{contiguous_slice, matmul};
 use crate::rng::Rng;
 use crate::{EngineError, Result};
 
@@ -118,52 +118,6 @@ pub fn load_vars(
     Ok(())
 }
 
-/// Row-major matrix view: data, row stride, column stride.
-type Mat<'a, T> = (&'a [T], isize, isize);
-
-/// dst[m, n] (row-major) = (accumulate ? dst : 0) + a[m, k] · b[k, n].
-fn matmul<T: WithDType>(
-    m: usize,
-    n: usize,
-    k: usize,
-    dst: &mut [T],
-    a: Mat<T>,
-    b: Mat<T>,
-    accumulate: bool,
-) {
-    debug_assert!(dst.len() >= m * n);
-    let parallelism = if m * n * k > 1 << 16 {
-        gemm::Parallelism::Rayon(rayon::current_num_threads())
-    } else {
-        gemm::Parallelism::None
-    };
-    // SAFETY: the slices cover the strided extents described by (m, n, k) and the strides,
-    // which every caller derives from the same shapes it allocated.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            1,
-            n as isize,
-            accumulate,
-            a.0.as_ptr(),
-            a.2,
-            a.1,
-            b.0.as_ptr(),
-            b.2,
-            b.1,
-            T::one(),
-            T::one(),
-            false,
-            false,
-            false,
-            parallelism,
-        )
-    }
-}
-
 /// Layer outputs after bias (and ReLU for hidden layers), input first.
 fn activations<T: WithDType>(widths: &[usize], x: &[T], params: &[T]) -> Vec<Vec<T>> {
     let n = x.len() / widths[0];
@@ -181,7 +135,7 @@ fn activations<T: WithDType>(widths: &[usize], x: &[T], params: &[T]) -> Vec<Vec
             n,
             fan_out,
             fan_in,
-            &mut out,
+            (&mut out, fan_out),
             (prev, fan_in as isize, 1),
             (weight, fan_out as isize, 1),
             false,
@@ -220,7 +174,7 @@ fn backward<T: WithDType>(widths: &[usize], x: &[T], params: &[T], grad: &[T]) -
             fan_in,
             fan_out,
             n,
-            dw,
+            (dw, fan_out),
             (h, 1, fan_in as isize),
             (&g, fan_out as isize, 1),
             false,
@@ -241,7 +195,7 @@ fn backward<T: WithDType>(widths: &[usize], x: &[T], params: &[T], grad: &[T]) -
             n,
             fan_in,
             fan_out,
-            target,
+            (target, fan_in),
             (&g, fan_out as isize, 1),
             (weight, 1, fan_out as isize),
             false,

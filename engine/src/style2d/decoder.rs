@@ -14,6 +14,7 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor, Var};
 
 use super::arch::VggArch;
+use super::conv::conv2d;
 use super::pad::reflection_pad2d;
 use super::resample::upsample_nearest2x;
 use super::st_file;
@@ -97,8 +98,7 @@ impl Decoder {
     pub fn forward(&self, feat: &Tensor) -> candle_core::Result<Tensor> {
         let mut h = feat.clone();
         for (s, (w, b)) in self.steps.iter().zip(&self.params) {
-            h = reflection_pad2d(&h, 1)?
-                .conv2d(w.as_tensor(), 0, 1, 1, 1)?
+            h = conv2d(&reflection_pad2d(&h, 1)?, w.as_tensor())?
                 .broadcast_add(&b.as_tensor().reshape((1, s.c_out, 1, 1))?)?;
             if s.relu {
                 h = h.relu()?;
@@ -273,13 +273,13 @@ mod tests {
         let w1 = gradcheck::random(&[3, 2, 3, 3], 20);
         let w2 = gradcheck::random(&[2, 3, 3, 3], 21);
         gradcheck::check(&gradcheck::random(&[1, 2, 3, 2], 22), |x| {
-            let h = reflection_pad2d(x, 1)?.conv2d(&w1, 0, 1, 1, 1)?.relu()?;
-            reflection_pad2d(&upsample_nearest2x(&h)?, 1)?.conv2d(&w2, 0, 1, 1, 1)
+            let h = conv2d(&reflection_pad2d(x, 1)?, &w1)?.relu()?;
+            conv2d(&reflection_pad2d(&upsample_nearest2x(&h)?, 1)?, &w2)
         });
         let x = gradcheck::random(&[1, 2, 3, 2], 23);
         gradcheck::check(&w1, |w| {
-            let h = reflection_pad2d(&x, 1)?.conv2d(w, 0, 1, 1, 1)?.relu()?;
-            reflection_pad2d(&upsample_nearest2x(&h)?, 1)?.conv2d(&w2, 0, 1, 1, 1)
+            let h = conv2d(&reflection_pad2d(&x, 1)?, w)?.relu()?;
+            conv2d(&reflection_pad2d(&upsample_nearest2x(&h)?, 1)?, &w2)
         });
     }
 }

@@ -15,7 +15,7 @@
 use candle_core::{Device, Result, Tensor};
 
 use super::arch::VggArch;
-use super::frozen_conv::FrozenConv;
+use super::conv::conv2d;
 use super::images;
 use super::pad::reflection_pad2d;
 use super::painted;
@@ -25,17 +25,18 @@ use super::weights::EncoderWeights;
 /// The four exposed feature maps, shallow to deep: relu1_1, relu2_1, relu3_1, relu4_1.
 pub type Features = [Tensor; 4];
 
-/// How the convolutions run. `Plain` is candle's conv2d, which also computes (and discards)
-/// kernel gradients; it exists to measure what [`FrozenConv`] saves.
+/// How the convolutions run. `Candle` is candle's own conv2d, which also computes (and
+/// discards) kernel gradients; it exists to measure what [`conv2d`] saves.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ConvPath {
-    Frozen,
-    Plain,
+    Engine,
+    Candle,
 }
 
 #[derive(Debug, Clone)]
 struct Layer {
-    conv: FrozenConv,
+    /// `[out, in, 3, 3]`, a plain tensor: no gradient is computed for it.
+    weight: Tensor,
     /// `[1, out, 1, 1]`.
     bias: Tensor,
     pool_before: bool,
@@ -74,7 +75,7 @@ impl VggEncoder {
             .zip(convs)
             .map(|(spec, (w, b))| {
                 Ok(Layer {
-                    conv: FrozenConv::new(w.to_device(device)?)?,
+                    weight: w.to_device(device)?.contiguous()?,
                     bias: b.to_device(device)?.reshape((1, spec.c_out, 1, 1))?,
                     pool_before: spec.pool_before,
                     tap: spec.tap,
@@ -84,7 +85,7 @@ impl VggEncoder {
         Ok(Self {
             arch: weights.arch,
             layers,
-            path: ConvPath::Frozen,
+            path: ConvPath::Engine,
             source: weights.source.clone(),
         })
     }
@@ -133,8 +134,8 @@ impl VggEncoder {
             }
             let padded = reflection_pad2d(&h, 1)?;
             let y = match self.path {
-                ConvPath::Frozen => layer.conv.forward(&padded)?,
-                ConvPath::Plain => padded.conv2d(layer.conv.weight(), 0, 1, 1, 1)?,
+                ConvPath::Engine => conv2d(&padded, &layer.weight)?,
+                ConvPath::Candle => padded.conv2d(&layer.weight, 0, 1, 1, 1)?,
             };
             h = y.broadcast_add(&layer.bias)?.relu()?;
             if layer.tap {
@@ -329,7 +330,7 @@ mod tests {
         );
         let plain = enc
             .clone()
-            .with_conv_path(ConvPath::Plain)
+            .with_conv_path(ConvPath::Candle)
             .relu4_1(&x)
             .unwrap();
         let err = (&f[3] - plain)
@@ -347,17 +348,16 @@ mod tests {
     #[test]
     fn encoder_block_gradient_matches_finite_differences() {
         // pad → frozen conv → bias → relu → pool → pad → conv, composed as in the encoder.
-        let w1 = FrozenConv::new(crate::style2d::gradcheck::random(&[3, 2, 3, 3], 7)).unwrap();
-        let w2 = FrozenConv::new(crate::style2d::gradcheck::random(&[2, 3, 3, 3], 8)).unwrap();
+        let w1 = crate::style2d::gradcheck::random(&[3, 2, 3, 3], 7);
+        let w2 = crate::style2d::gradcheck::random(&[2, 3, 3, 3], 8);
         let b = crate::style2d::gradcheck::random(&[1, 3, 1, 1], 9);
         crate::style2d::gradcheck::check(
             &crate::style2d::gradcheck::random(&[1, 2, 6, 4], 10),
             |x| {
-                let h = w1
-                    .forward(&reflection_pad2d(x, 1)?)?
+                let h = conv2d(&reflection_pad2d(x, 1)?, &w1)?
                     .broadcast_add(&b)?
                     .relu()?;
-                w2.forward(&reflection_pad2d(&max_pool2x2(&h)?, 1)?)
+                conv2d(&reflection_pad2d(&max_pool2x2(&h)?, 1)?, &w2)
             },
         );
     }

@@ -5,10 +5,10 @@
 
 pub mod adain;
 pub mod arch;
+pub mod conv;
 pub mod decoder;
 pub mod encoder;
 pub mod fit;
-pub mod frozen_conv;
 pub mod images;
 pub mod losses;
 pub mod network;
