@@ -183,18 +183,53 @@ impl RadianceField {
     pub fn samples(&self, samples: &Samples, view_dirs: &[glam::Vec3]) -> Result<FieldSamples> {
         let points01 = self.points01(&samples.positions)?;
         let (sigma, geometry) = self.geometry(&points01)?;
+        Ok(FieldSamples {
+            sigma,
+            geometry,
+            points01,
+            view_sh: self.view_sh(samples, view_dirs)?,
+        })
+    }
+
+    /// [`RadianceField::samples`] without gradients and without evaluating the density again:
+    /// the entries of `values` (computed at all the samples `samples` was filtered from) that
+    /// `keep` marks.
+    pub fn kept_samples(
+        &self,
+        values: &GeometryValues,
+        keep: &[bool],
+        samples: &Samples,
+        view_dirs: &[glam::Vec3],
+    ) -> Result<FieldSamples> {
+        let g = self.config.geometry_features;
+        let n = samples.ray.len();
+        let (mut sigma, mut geometry, mut points01) = (
+            Vec::with_capacity(n),
+            Vec::with_capacity(n * g),
+            Vec::with_capacity(3 * n),
+        );
+        for k in (0..keep.len()).filter(|&k| keep[k]) {
+            sigma.push(values.sigma[k]);
+            geometry.extend_from_slice(&values.geometry[k * g..(k + 1) * g]);
+            points01.extend_from_slice(&values.points01[3 * k..3 * k + 3]);
+        }
+        let dev = self.device();
+        Ok(FieldSamples {
+            sigma: Tensor::from_vec(sigma, n, dev)?,
+            geometry: Tensor::from_vec(geometry, (n, g), dev)?,
+            points01: Tensor::from_vec(points01, (n, 3), dev)?,
+            view_sh: self.view_sh(samples, view_dirs)?,
+        })
+    }
+
+    /// SH encoding of each sample's view direction [N, 16].
+    fn view_sh(&self, samples: &Samples, view_dirs: &[glam::Vec3]) -> Result<Tensor> {
         let sh: Vec<f32> = samples
             .ray
             .iter()
             .flat_map(|&r| sh16(view_dirs[r as usize].to_array()))
             .collect();
-        let view_sh = Tensor::from_vec(sh, (samples.ray.len(), 16), self.device())?;
-        Ok(FieldSamples {
-            sigma,
-            geometry,
-            points01,
-            view_sh,
-        })
+        Ok(Tensor::from_vec(sh, (samples.ray.len(), 16), self.device())?)
     }
 
     /// The photoreal colour of the field at evaluated samples [N, 3].

@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::field::radiance::{FieldSamples, RadianceField};
 use crate::render::composite::{composite, split_with_background};
-use crate::render::march::{early_stop_mask, march, RayBatch};
+use crate::render::march::{early_stop_mask, march, RayBatch, Samples};
 use crate::rng::Rng;
 use crate::Result;
 
@@ -70,14 +70,51 @@ pub fn render_rays(
     // A cheap gradient-free density pass finds where each ray becomes opaque.
     let sigma = field.density_values(&marched.positions)?;
     let samples = marched.filter(&early_stop_mask(&marched, &sigma, cfg.early_stop_eps));
-    let packed = Arc::new(samples.packed.clone());
-    let dev = field.device();
-    let out = if samples.ray.is_empty() {
-        Tensor::zeros((rays.len(), 5), candle_core::DType::F32, dev)?
+    let evaluated = if samples.ray.is_empty() {
+        None
     } else {
-        let evaluated = field.samples(&samples, &rays.view_dirs)?;
-        let rgb = colour(&evaluated)?;
-        composite(&evaluated.sigma, &rgb, &packed)?
+        Some(field.samples(&samples, &rays.view_dirs)?)
+    };
+    finish(field, rays, &samples, evaluated, background, colour)
+}
+
+/// [`render_rays`] for inference: no jitter and no gradients, so the one density pass that
+/// finds where each ray becomes opaque also gives the kept samples' σ and geometry features.
+fn render_rays_inference(
+    field: &RadianceField,
+    rays: &RayBatch,
+    cfg: &SamplingConfig,
+    background: [f32; 3],
+    colour: &ColourFn,
+) -> Result<RenderOutput> {
+    let step = step_size(field, rays, cfg);
+    let marched = march(rays, &field.occupancy, step, cfg.max_samples_per_ray, None);
+    let values = field.geometry_values(&marched.positions)?;
+    let keep = early_stop_mask(&marched, &values.sigma, cfg.early_stop_eps);
+    let samples = marched.filter(&keep);
+    let evaluated = if samples.ray.is_empty() {
+        None
+    } else {
+        Some(field.kept_samples(&values, &keep, &samples, &rays.view_dirs)?)
+    };
+    finish(field, rays, &samples, evaluated, background, colour)
+}
+
+/// Colours and composites the evaluated samples of `rays` (none: every ray is background).
+fn finish(
+    field: &RadianceField,
+    rays: &RayBatch,
+    samples: &Samples,
+    evaluated: Option<FieldSamples>,
+    background: [f32; 3],
+    colour: &ColourFn,
+) -> Result<RenderOutput> {
+    let out = match evaluated {
+        None => Tensor::zeros((rays.len(), 5), candle_core::DType::F32, field.device())?,
+        Some(evaluated) => {
+            let rgb = colour(&evaluated)?;
+            composite(&evaluated.sigma, &rgb, &Arc::new(samples.packed.clone()))?
+        }
     };
     let (rgb, depth, opacity) = split_with_background(&out, background)?;
     Ok(RenderOutput {
@@ -112,7 +149,7 @@ pub fn render_image(
     };
     let idx: Vec<usize> = (0..rays.len()).collect();
     for part in idx.chunks(chunk.max(1)) {
-        let out = render_rays(field, &rays.select(part), cfg, background, colour, None)?;
+        let out = render_rays_inference(field, &rays.select(part), cfg, background, colour)?;
         img.rgb
             .extend(out.rgb.detach().flatten_all()?.to_vec1::<f32>()?);
         let opacity: Vec<f32> = out.opacity.detach().to_vec1()?;
