@@ -229,7 +229,11 @@ impl RadianceField {
             .iter()
             .flat_map(|&r| sh16(view_dirs[r as usize].to_array()))
             .collect();
-        Ok(Tensor::from_vec(sh, (samples.ray.len(), 16), self.device())?)
+        Ok(Tensor::from_vec(
+            sh,
+            (samples.ray.len(), 16),
+            self.device(),
+        )?)
     }
 
     /// The photoreal colour of the field at evaluated samples [N, 3].
