@@ -1,11 +1,14 @@
 //! End-to-end tests of the first two stages on a tiny generated scene: training reaches a
 //! PSNR floor, an interrupted run resumes from its checkpoint and ends where an uninterrupted
-//! run ends, and `render_views` writes views with plausible depth.
+//! run ends, and `render_views` writes views with plausible depth, rendered as the training
+//! path renders them.
 
 use std::path::Path;
 
 use candle_core::Device;
+use stylenerf_engine::field::saved;
 use stylenerf_engine::preset::Preset;
+use stylenerf_engine::render::render_rays;
 use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig, NerfReport};
@@ -91,6 +94,31 @@ fn tiny_training_reaches_a_psnr_floor_and_renders_views() {
         err / (n as f32) < 0.1 * extent,
         "depth MAE {}",
         err / n as f32
+    );
+
+    // render_views' inference path (one density pass per sample) renders what the training
+    // path (a gradient-free pass, then a second pass on the kept samples) renders.
+    let (field, meta) = saved::load(&out, &Device::Cpu).unwrap();
+    let rays = meta.camera_rays(&views.views[0].camera);
+    let reference = render_rays(
+        &field,
+        &rays,
+        &meta.sampling,
+        meta.background,
+        &|s| field.colour(s),
+        None,
+    )
+    .unwrap();
+    let rgb: Vec<f32> = reference.rgb.flatten_all().unwrap().to_vec1().unwrap();
+    assert_eq!(rgb.len(), views.rgb(0).len());
+    let worst = rgb
+        .iter()
+        .zip(views.rgb(0))
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(
+        worst < 1e-4,
+        "inference and training renders differ by {worst}"
     );
 }
 
