@@ -20,6 +20,11 @@ use crate::Result;
 /// Samples with a compositing weight below this are dropped (their colour is invisible).
 pub const MIN_WEIGHT: f32 = 1e-3;
 
+/// At most this many samples are kept per ray (those of largest weight, rescaled to carry the
+/// ray's whole kept weight), so the cache's size is bounded by the pixel count whatever the
+/// field: a hazy field gives dozens of samples above `MIN_WEIGHT` per ray.
+pub const MAX_SAMPLES_PER_RAY: usize = 12;
+
 /// Rays evaluated per field pass when building the cache.
 const CHUNK: usize = 8192;
 
@@ -55,6 +60,28 @@ pub struct SurfaceBatch {
     pub transparency: Tensor,
 }
 
+/// Keeps the `cap` samples of largest weight (in ray order), scaled so they carry the weight
+/// of all of them: the ray's opacity, hence its background share, is unchanged.
+fn cap_samples(samples: &mut Vec<(usize, f32)>, cap: usize) {
+    if samples.len() <= cap {
+        return;
+    }
+    let total: f32 = samples.iter().map(|s| s.1).sum();
+    let mut by_weight = samples.clone();
+    by_weight.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let floor = by_weight[cap - 1].1;
+    let mut room = cap;
+    samples.retain(|s| {
+        let keep = room > 0 && s.1 >= floor;
+        room -= keep as usize;
+        keep
+    });
+    let kept: f32 = samples.iter().map(|s| s.1).sum();
+    for s in samples.iter_mut() {
+        s.1 *= total / kept;
+    }
+}
+
 impl SurfaceSamples {
     pub fn num_rays(&self) -> usize {
         self.offsets.len().saturating_sub(1)
@@ -80,6 +107,7 @@ impl SurfaceSamples {
             let marched = march(
                 &batch,
                 &field.occupancy,
+                field.space.contraction.as_ref(),
                 step,
                 meta.sampling.max_samples_per_ray,
                 None,
@@ -87,8 +115,10 @@ impl SurfaceSamples {
             // One pass of the density network over the marched samples gives σ for the
             // weights and the geometry features of the samples that keep one.
             let values = field.geometry_values(&marched.positions)?;
+            let mut kept: Vec<(usize, f32)> = Vec::new();
             for w in marched.packed.offsets.windows(2) {
                 let mut transmittance = 1.0f32;
+                kept.clear();
                 for k in w[0] as usize..w[1] as usize {
                     if transmittance < MIN_WEIGHT {
                         // Every later weight is below the transmittance, hence dropped.
@@ -98,13 +128,17 @@ impl SurfaceSamples {
                     let weight = transmittance * alpha;
                     transmittance *= 1.0 - alpha;
                     if weight >= MIN_WEIGHT {
-                        out.weights.push(weight);
-                        out.geometry
-                            .extend_from_slice(&values.geometry[k * g..(k + 1) * g]);
-                        out.points01
-                            .extend_from_slice(&values.points01[3 * k..3 * k + 3]);
-                        out.depths.push(marched.packed.depths[k]);
+                        kept.push((k, weight));
                     }
+                }
+                cap_samples(&mut kept, MAX_SAMPLES_PER_RAY);
+                for &(k, weight) in &kept {
+                    out.weights.push(weight);
+                    out.geometry
+                        .extend_from_slice(&values.geometry[k * g..(k + 1) * g]);
+                    out.points01
+                        .extend_from_slice(&values.points01[3 * k..3 * k + 3]);
+                    out.depths.push(marched.packed.depths[k]);
                 }
                 out.offsets.push(out.weights.len() as u32);
             }
@@ -169,5 +203,27 @@ impl SurfaceBatch {
         let rgb = Tensor::zeros((self.num_rays, 3), colours.dtype(), colours.device())?
             .index_add(&self.ray, &weighted, 0)?;
         Ok((rgb + self.transparency.broadcast_mul(background)?)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::cap_samples;
+
+    #[test]
+    fn capping_keeps_the_heaviest_samples_in_order_and_the_opacity() {
+        let mut s: Vec<(usize, f32)> = (0..20)
+            .map(|k| (k, 0.01 + 0.001 * (k % 7) as f32))
+            .collect();
+        let total: f32 = s.iter().map(|s| s.1).sum();
+        cap_samples(&mut s, 5);
+        assert_eq!(s.len(), 5);
+        assert!(s.windows(2).all(|w| w[0].0 < w[1].0));
+        assert!(s.iter().all(|&(k, _)| k % 7 >= 5), "{s:?}");
+        let kept: f32 = s.iter().map(|s| s.1).sum();
+        assert!((kept - total).abs() < 1e-5);
+        let mut short = vec![(3, 0.5)];
+        cap_samples(&mut short, 5);
+        assert_eq!(short, vec![(3, 0.5)]);
     }
 }
