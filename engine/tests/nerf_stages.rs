@@ -8,9 +8,9 @@ use std::path::Path;
 use candle_core::Device;
 use stylenerf_engine::field::saved;
 use stylenerf_engine::preset::Preset;
-use stylenerf_engine::render::render_rays;
-use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions};
-use stylenerf_engine::scene::{LoadOptions, Scene};
+use stylenerf_engine::render::{render_image, render_rays};
+use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions, Surroundings};
+use stylenerf_engine::scene::{Background, LoadOptions, Scene};
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig, NerfReport};
 use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
 use stylenerf_engine::stages::{Outcome, StageControl};
@@ -22,6 +22,7 @@ fn tiny_scene(dir: &Path, rig: CameraRig) -> Scene {
         size: 32,
         views: 16,
         seed: 3,
+        ..GenerateOptions::default()
     };
     generate(&opts, dir).unwrap();
     Scene::load(dir, &LoadOptions::default()).unwrap()
@@ -100,15 +101,7 @@ fn tiny_training_reaches_a_psnr_floor_and_renders_views() {
     // path (a gradient-free pass, then a second pass on the kept samples) renders.
     let (field, meta) = saved::load(&out, &Device::Cpu).unwrap();
     let rays = meta.camera_rays(&views.views[0].camera);
-    let reference = render_rays(
-        &field,
-        &rays,
-        &meta.sampling,
-        meta.background,
-        &|s| field.colour(s),
-        None,
-    )
-    .unwrap();
+    let reference = render_rays(&field, &rays, &meta.sampling, &|s| field.colour(s), None).unwrap();
     let rgb: Vec<f32> = reference.rgb.flatten_all().unwrap().to_vec1().unwrap();
     assert_eq!(rgb.len(), views.rgb(0).len());
     let worst = rgb
@@ -191,4 +184,92 @@ fn forward_facing_scene_trains_in_ndc() {
         .unwrap(),
     );
     assert!(report.test_psnr.unwrap() > 15.0, "{report:?}");
+}
+
+/// Trains a tiny field on a generated scene with the given surroundings and renders its test
+/// views: (scene, report, per test pixel (true depth, rendered depth, rendered opacity)).
+fn train_surrounded(
+    dir: &Path,
+    surroundings: Surroundings,
+    steps: u64,
+) -> (Scene, NerfReport, Vec<(f32, f32, f32)>) {
+    let opts = GenerateOptions {
+        size: 32,
+        views: 24,
+        seed: 3,
+        surroundings,
+        ..GenerateOptions::default()
+    };
+    generate(&opts, &dir.join("scene")).unwrap();
+    let scene = Scene::load(dir.join("scene"), &LoadOptions::default()).unwrap();
+    let out = dir.join("nerf");
+    let report = done(
+        nerf_pretrain::run(
+            &scene,
+            &tiny_config(steps),
+            &out,
+            &StageControl::default(),
+            &Device::Cpu,
+        )
+        .unwrap(),
+    );
+    let (field, meta) = saved::load(&out, &Device::Cpu).unwrap();
+    let mut pixels = Vec::new();
+    for &i in &scene.test {
+        let frame = &scene.frames[i];
+        let img = render_image(
+            &field,
+            &meta.camera_rays(&frame.camera),
+            &meta.sampling,
+            &|s| field.colour(s),
+            4096,
+        )
+        .unwrap();
+        for ((g, d), o) in frame
+            .depth
+            .as_ref()
+            .unwrap()
+            .iter()
+            .zip(&img.depth)
+            .zip(&img.opacity)
+        {
+            pixels.push((*g, *d, *o));
+        }
+    }
+    (scene, report, pixels)
+}
+
+#[test]
+fn a_sky_at_infinity_is_learned_as_background_not_fog() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, report, pixels) = train_surrounded(tmp.path(), Surroundings::Sky, 300);
+    assert_eq!(scene.background, Background::Learned);
+    let psnr = report.test_psnr.unwrap();
+    assert!(psnr > 20.0, "test PSNR {psnr}");
+    // Rays that miss every object stay transparent: the sky is the background's, not haze.
+    // (The tiny field blurs the objects' outlines, so count the clear sky pixels.)
+    let sky: Vec<f32> = pixels.iter().filter(|p| p.0 == 0.0).map(|p| p.2).collect();
+    let clear = sky.iter().filter(|&&o| o < 0.25).count() as f32 / sky.len() as f32;
+    assert!(
+        sky.len() > 200 && clear > 0.75,
+        "clear sky {clear} of {}",
+        sky.len()
+    );
+    assert!(
+        report.empty_opacity.unwrap() < 0.2,
+        "{:?}",
+        report.empty_opacity
+    );
+    // And the objects' depth is right.
+    let hits: Vec<f32> = pixels
+        .iter()
+        .filter(|p| p.0 > 0.0 && p.2 > 0.5)
+        .map(|p| (p.1 - p.0).abs())
+        .collect();
+    let mae = hits.iter().sum::<f32>() / hits.len() as f32;
+    assert!(
+        hits.len() > 300 && mae < 0.05 * 2.0,
+        "depth MAE {mae} over {}",
+        hits.len()
+    );
 }

@@ -17,6 +17,7 @@ fn fixture(rig: CameraRig) -> TempDir {
         size: 24,
         views: 8,
         seed: 3,
+        ..GenerateOptions::default()
     };
     generate(&opts, dir.path()).unwrap();
     dir

@@ -7,8 +7,8 @@ use glam::Vec3;
 use image::{Rgba, RgbaImage};
 use serde_json::{json, Value};
 use stylenerf_engine::camera::Camera;
-use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions};
-use stylenerf_engine::scene::{LoadOptions, Scene, SceneFormat};
+use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions, Surroundings};
+use stylenerf_engine::scene::{Background, LoadOptions, Scene, SceneFormat};
 use tempfile::TempDir;
 
 fn fixture(rig: CameraRig, size: u32, views: usize) -> TempDir {
@@ -18,6 +18,7 @@ fn fixture(rig: CameraRig, size: u32, views: usize) -> TempDir {
         size,
         views,
         seed: 11,
+        ..GenerateOptions::default()
     };
     generate(&opts, dir.path()).unwrap();
     dir
@@ -46,7 +47,7 @@ fn orbit_scene_loads_as_nerfstudio() {
     assert_eq!(scene.resolution(), (32, 32));
     assert_eq!(scene.aabb.min, Vec3::splat(-1.0));
     assert!(scene.ndc.is_none() && scene.near > 0.0 && scene.far > scene.near);
-    assert_eq!(scene.background, [0.8, 0.86, 0.93]);
+    assert_eq!(scene.background, Background::Colour([0.8, 0.86, 0.93]));
     let frame = &scene.frames[3];
     assert_eq!(frame.name, "images/frame_00003.png");
     let png = image::open(d.path().join(&frame.name)).unwrap().to_rgb8();
@@ -114,7 +115,8 @@ fn bounds_are_estimated_when_absent() {
         s.aabb
     );
     assert!((s.aabb.size().x - 5.4).abs() < 1e-2);
-    assert!(s.near > 0.0 && s.far > 2.7 && s.background == [1.0; 3]);
+    // Photos without alpha, without a stated box or background: a real capture.
+    assert!(s.near > 0.0 && s.far > 2.7 && s.background == Background::Learned && s.unbounded);
 }
 
 #[test]
@@ -262,7 +264,7 @@ fn blender_scene_composites_alpha() {
     };
     let s = Scene::load(d.path().join("transforms_train.json"), &opts).unwrap();
     assert_eq!(s.frames[0].image.get_pixel(1, 1).0, [0.0, 0.5, 0.0]);
-    assert_eq!(s.background, [0.0, 0.5, 0.0]);
+    assert_eq!(s.background, Background::Colour([0.0, 0.5, 0.0]));
 }
 
 /// Moves each pixel of an ideal image to where a lens with `k1, k2, p1, p2` records it:
@@ -428,4 +430,173 @@ fn ground_truth_depth_is_consistent_across_views() {
         agree > 0.6 && see_through < 0.005,
         "agree {agree}, see-through {see_through}"
     );
+}
+
+fn surrounded(surroundings: Surroundings) -> TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = GenerateOptions {
+        size: 24,
+        views: 8,
+        seed: 11,
+        surroundings,
+        ..GenerateOptions::default()
+    };
+    generate(&opts, dir.path()).unwrap();
+    dir
+}
+
+#[test]
+fn photos_without_alpha_get_a_learned_background_and_unbounded_space() {
+    // A stated colour: known background, bounded.
+    let plain = Scene::load(
+        surrounded(Surroundings::Plain).path(),
+        &LoadOptions::default(),
+    )
+    .unwrap();
+    assert!(matches!(plain.background, Background::Colour(_)) && !plain.unbounded);
+    // A sky at infinity and a stated box: learned background, bounded by the box.
+    let sky_dir = surrounded(Surroundings::Sky);
+    let sky = Scene::load(sky_dir.path(), &LoadOptions::default()).unwrap();
+    assert_eq!(sky.background, Background::Learned);
+    assert!(!sky.unbounded && sky.aabb.min == Vec3::splat(-1.0));
+    // Pixels of the sky have no ground-truth depth; the room's walls have.
+    let unknown = |s: &Scene| {
+        s.frames
+            .iter()
+            .flat_map(|f| f.depth.as_ref().unwrap())
+            .filter(|d| **d == 0.0)
+            .count()
+    };
+    assert!(unknown(&sky) > 100);
+    // A room with no box and no background: learned background, contracted space, far
+    // beyond the cameras.
+    let room = Scene::load(
+        surrounded(Surroundings::Room).path(),
+        &LoadOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(room.background, Background::Learned);
+    assert!(room.unbounded && room.far > 50.0 * room.aabb.size().max_element());
+    assert_eq!(unknown(&room), 0);
+    // The user's colour wins over learning.
+    let forced = LoadOptions {
+        background: Some([0.0, 0.0, 0.0]),
+        ..LoadOptions::default()
+    };
+    let s = Scene::load(sky_dir.path(), &forced).unwrap();
+    assert_eq!(s.background, Background::Colour([0.0; 3]));
+}
+
+/// A `.npy` file with the given dtype descriptor, shape and little-endian payload.
+fn npy_bytes(descr: &str, shape: &str, payload: &[u8]) -> Vec<u8> {
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    out.extend_from_slice(payload);
+    out
+}
+
+#[test]
+fn npy_depth_maps_load_like_png_ones() {
+    let d = fixture(CameraRig::Orbit, 24, 8);
+    let png = Scene::load(d.path(), &LoadOptions::default()).unwrap();
+    // Every frame's depth as float32 metres (H, W), frame 1's as uint16 millimetres
+    // (H, W, 1), both through depth_unit_scale_factor as nerfstudio reads them.
+    let mut frames = Vec::new();
+    for (i, f) in png.frames.iter().enumerate() {
+        let depth = f.depth.as_ref().unwrap();
+        let name = format!("depths/frame_{i:05}.npy");
+        let bytes = if i == 1 {
+            let mm: Vec<u8> = depth
+                .iter()
+                .flat_map(|d| ((d * 1000.0).round() as u16).to_le_bytes())
+                .collect();
+            npy_bytes("<u2", "(24, 24, 1)", &mm)
+        } else {
+            let m: Vec<u8> = depth
+                .iter()
+                .flat_map(|d| (d * 1000.0).to_le_bytes())
+                .collect();
+            npy_bytes("<f4", "(24, 24)", &m)
+        };
+        std::fs::write(d.path().join(&name), bytes).unwrap();
+        frames.push(name);
+    }
+    edit(d.path(), |doc| {
+        doc["depth_unit_scale_factor"] = json!(1e-3);
+        for (f, name) in doc["frames"]
+            .as_array_mut()
+            .unwrap()
+            .iter_mut()
+            .zip(&frames)
+        {
+            f["depth_file_path"] = json!(name);
+        }
+    });
+    let npy = Scene::load(d.path(), &LoadOptions::default()).unwrap();
+    for (a, b) in png.frames.iter().zip(&npy.frames) {
+        let (a, b) = (a.depth.as_ref().unwrap(), b.depth.as_ref().unwrap());
+        assert!(
+            a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-3),
+            "{:?}",
+            &b[..4]
+        );
+    }
+    // A depth array of the wrong size names the frame's field.
+    std::fs::write(
+        d.path().join(&frames[2]),
+        npy_bytes("<f4", "(2, 2)", &[0u8; 16]),
+    )
+    .unwrap();
+    let msg = Scene::load(d.path(), &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("frames[2].depth_file_path") && msg.contains("2×2"),
+        "{msg}"
+    );
+}
+
+#[test]
+fn missing_images_are_named_in_one_error() {
+    let d = fixture(CameraRig::Orbit, 16, 8);
+    for i in [2, 5, 6] {
+        std::fs::remove_file(d.path().join(format!("images/frame_{i:05}.png"))).unwrap();
+    }
+    let msg = Scene::load(d.path(), &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("3 of 8 frames"), "{msg}");
+    for i in [2, 5, 6] {
+        assert!(
+            msg.contains(&format!("images/frame_{i:05}.png (frames[{i}])")),
+            "{msg}"
+        );
+    }
+}
+
+#[test]
+fn working_resolution_caps_the_longest_side() {
+    let d = fixture(CameraRig::Orbit, 24, 8);
+    let opts = LoadOptions {
+        max_side: Some(12),
+        ..LoadOptions::default()
+    };
+    let s = Scene::load(d.path(), &opts).unwrap();
+    assert_eq!(s.resolution(), (12, 12));
+    assert!(s
+        .frames
+        .iter()
+        .all(|f| f.depth.as_ref().unwrap().len() == 144));
+    let bad = LoadOptions {
+        max_side: Some(2),
+        ..LoadOptions::default()
+    };
+    let msg = Scene::load(d.path(), &bad).unwrap_err().to_string();
+    assert!(msg.contains("max_side"), "{msg}");
 }

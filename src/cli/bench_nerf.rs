@@ -1,11 +1,12 @@
-//! `stylenerf bench nerf`: trains the field on the generated 360° scene and prints test PSNR
-//! against training time, samples per second, depth error and peak memory.
+//! `stylenerf bench nerf`: trains the field on a dataset (by default the generated 360° scene)
+//! at the preset's working resolution and prints test PSNR against training time, samples per
+//! second, depth error and peak memory.
 
 use std::path::PathBuf;
 
 use clap::Args;
 use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions};
-use stylenerf_engine::scene::{LoadOptions, Scene};
+use stylenerf_engine::scene::Scene;
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
 use stylenerf_engine::stages::Outcome;
 
@@ -13,6 +14,9 @@ use super::common::{stage_progress, TrainingArgs};
 
 #[derive(Debug, Args)]
 pub struct BenchNerfArgs {
+    /// A dataset to train on instead of the generated scene (e.g. a real capture).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
     /// Image size of the generated scene.
     #[arg(long, default_value_t = 128)]
     pub size: u32,
@@ -43,18 +47,19 @@ pub fn run(args: BenchNerfArgs) -> anyhow::Result<()> {
         .work
         .clone()
         .unwrap_or_else(|| tmp.path().to_path_buf());
-    let data = work.join("scene");
-    if !data.join("transforms.json").exists() {
+    let data = args.data.clone().unwrap_or_else(|| work.join("scene"));
+    if args.data.is_none() && !data.join("transforms.json").exists() {
         let opts = GenerateOptions {
             rig: CameraRig::Orbit,
             size: args.size,
             views: args.views,
             seed: 7,
+            ..GenerateOptions::default()
         };
         generate(&opts, &data)?;
     }
-    let scene = Scene::load(&data, &LoadOptions::default())?;
     let mut cfg: NerfConfig = args.training.config(NerfConfig::preset)?;
+    let scene = Scene::load(&data, &cfg.load_options())?;
     cfg.eval_every = (cfg.steps / args.evals.max(1)).max(1);
     let out = work.join(format!("nerf-{}", args.training.preset));
     if out.exists() {
@@ -66,12 +71,17 @@ pub fn run(args: BenchNerfArgs) -> anyhow::Result<()> {
     let Outcome::Done(report) = outcome else {
         anyhow::bail!("training stopped early")
     };
+    let (w, h) = scene.resolution();
+    let name = match &args.data {
+        Some(d) => d.display().to_string(),
+        None => "generated orbit".to_string(),
+    };
     println!(
-        "scene: generated orbit, {}x{}, {} train / {} test views; preset {} ({} steps)",
-        args.size,
-        args.size,
+        "scene: {name}, {w}x{h}, {} train / {} test views, background {}{}; preset {} ({} steps)",
         scene.train.len(),
         scene.test.len(),
+        scene.background,
+        if scene.unbounded { ", unbounded" } else { "" },
         args.training.preset,
         cfg.steps
     );
@@ -87,6 +97,17 @@ pub fn run(args: BenchNerfArgs) -> anyhow::Result<()> {
     if let (Some(mae), Some(rel)) = (report.depth_mae, report.depth_mae_relative) {
         println!("depth MAE on test pixels with opacity > 0.5: {mae:.4} world units = {:.2}% of the scene extent", rel * 100.0);
     }
+    if let Some(m) = report.depth_median_relative_error {
+        println!("median relative depth error: {:.2}%", m * 100.0);
+    }
+    if let Some(o) = report.empty_opacity {
+        println!("mean opacity where the truth sees nothing (background at infinity): {o:.3}");
+    }
+    println!(
+        "samples per ray (training): {:.1}; occupied cells: {:.1}%",
+        report.samples_per_ray,
+        report.occupied_fraction * 100.0
+    );
     if let Some(rss) = peak_rss_mib() {
         println!("peak RSS: {rss:.0} MiB");
     }

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Subcommand;
-use stylenerf_engine::scene::{LoadOptions, Scene};
+use stylenerf_engine::scene::Scene;
 use stylenerf_engine::stages::{nerf_pretrain, render_views, Outcome};
 
 use super::common::{stage_progress, TrainingArgs};
@@ -46,7 +46,7 @@ pub fn run(cmd: NerfCommand) -> anyhow::Result<()> {
         } => {
             let cfg = training.config(nerf_pretrain::NerfConfig::preset)?;
             let device = training.device()?;
-            let scene = Scene::load(&data, &LoadOptions::default())
+            let scene = Scene::load(&data, &cfg.load_options())
                 .with_context(|| format!("loading {}", data.display()))?;
             let (bar, control) = stage_progress("nerf_pretrain");
             let outcome = nerf_pretrain::run(&scene, &cfg, &out, &control, &device)?;

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use clap::Args;
 use stylenerf_engine::preset::{parse_override, stage_overrides, Preset};
-use stylenerf_engine::scene::{LoadOptions, Scene};
+use stylenerf_engine::scene::Scene;
 use stylenerf_engine::stages::render_stylized::{self, markdown_table, RenderStylizedConfig};
 use stylenerf_engine::stages::{
     decoder_pretrain, mutual_learning, nerf_pretrain, render_views, Outcome, STAGES,
@@ -202,9 +202,9 @@ impl Pipeline {
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let p = Pipeline::new(&args.common, &args.styles, &args.out, args.until.clone())?;
-    let scene = Scene::load(&args.data, &LoadOptions::default())
-        .with_context(|| format!("loading {}", args.data.display()))?;
     let nerf = p.config("nerf_pretrain", nerf_pretrain::NerfConfig::preset)?;
+    let scene = Scene::load(&args.data, &nerf.load_options())
+        .with_context(|| format!("loading {}", args.data.display()))?;
     if !p.stage("nerf_pretrain", |out, c| {
         nerf_pretrain::run(&scene, &nerf, out, c, &p.device)
     })? {

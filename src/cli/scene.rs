@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Subcommand, ValueEnum};
-use stylenerf_engine::scene::generate::{self, CameraRig, GenerateOptions};
+use stylenerf_engine::scene::generate::{self, CameraRig, GenerateOptions, Surroundings};
 use stylenerf_engine::scene::{LoadOptions, Scene, SceneFormat};
 
 #[derive(Debug, Subcommand)]
@@ -28,6 +28,10 @@ pub enum SceneCommand {
         /// Camera layout: a 360° orbit or a forward-facing grid.
         #[arg(long, value_enum, default_value_t = Kind::Orbit)]
         kind: Kind,
+        /// Around the table: a solid colour stated in the dataset (plain), a sky at infinity,
+        /// or a room past the content box (the last two look like real captures).
+        #[arg(long, value_enum, default_value_t = Around::Plain)]
+        surroundings: Around,
     },
     /// Check that a dataset loads and print a summary.
     Info {
@@ -40,6 +44,9 @@ pub enum SceneCommand {
         /// Shrink images by this integer factor.
         #[arg(long, default_value_t = 1)]
         downscale: u32,
+        /// Working resolution: shrink images so their longest side is at most this.
+        #[arg(long)]
+        max_side: Option<u32>,
     },
 }
 
@@ -47,6 +54,13 @@ pub enum SceneCommand {
 pub enum Kind {
     Orbit,
     Forward,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum Around {
+    Plain,
+    Sky,
+    Room,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -64,6 +78,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             views,
             seed,
             kind,
+            surroundings,
         } => {
             let rig = match kind {
                 Kind::Orbit => CameraRig::Orbit,
@@ -74,6 +89,11 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
                 size,
                 views,
                 seed,
+                surroundings: match surroundings {
+                    Around::Plain => Surroundings::Plain,
+                    Around::Sky => Surroundings::Sky,
+                    Around::Room => Surroundings::Room,
+                },
             };
             let start = Instant::now();
             generate::generate(&opts, &out)
@@ -89,6 +109,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             data,
             format,
             downscale,
+            max_side,
         } => {
             let opts = LoadOptions {
                 format: format.map(|f| match f {
@@ -97,6 +118,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
                     Format::Llff => SceneFormat::Llff,
                 }),
                 downscale,
+                max_side,
                 ..LoadOptions::default()
             };
             let detected = match opts.format {
@@ -138,9 +160,11 @@ fn print_summary(format: SceneFormat, scene: &Scene) {
     println!("near, far   {:.3}, {:.3}", scene.near, scene.far);
     match scene.ndc {
         Some(ndc) => println!("rays        NDC (forward-facing, near plane {})", ndc.near),
+        None if scene.unbounded => {
+            println!("rays        world, unbounded (space beyond the box contracted)")
+        }
         None => println!("rays        world"),
     }
-    let [r, g, b] = scene.background;
-    println!("background  [{r:.3}, {g:.3}, {b:.3}]");
+    println!("background  {}", scene.background);
     println!("depth       {with_depth} of {} frames", scene.frames.len());
 }

@@ -10,7 +10,7 @@ use serde::Serialize;
 use stylenerf_engine::camera::Camera;
 use stylenerf_engine::field::saved;
 use stylenerf_engine::image_io;
-use stylenerf_engine::scene::{LoadOptions, Scene};
+use stylenerf_engine::scene::Scene;
 use stylenerf_engine::stages::decoder_pretrain::{self, DecoderPretrainConfig, StyleImage};
 use stylenerf_engine::stages::mutual_learning::{self, MutualConfig};
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
@@ -54,7 +54,7 @@ async fn nerf_pretrain(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskError>
         .stage_config("nerf_pretrain", NerfConfig::preset)?;
     let data = ctx.dataset().await?;
     ctx.run_engine(move |control, device, out| {
-        let scene = Scene::load(&data, &LoadOptions::default())?;
+        let scene = Scene::load(&data, &cfg.load_options())?;
         let outcome = nerf_pretrain::run(&scene, &cfg, out, control, device)?;
         Ok(map_done(outcome, |r| numeric_fields(&r)))
     })

@@ -7,3 +7,4 @@ pub mod occupancy;
 pub mod radiance;
 pub mod saved;
 pub mod sh;
+pub mod space;

@@ -16,9 +16,10 @@ use crate::field::hash_grid::{self, HashGrid, HashGridConfig};
 use crate::field::mlp::{load_vars, Mlp};
 use crate::field::occupancy::OccupancyGrid;
 use crate::field::sh::sh16;
+use crate::field::space::FieldSpace;
 use crate::render::march::Samples;
 use crate::rng::Rng;
-use crate::scene::Aabb;
+use crate::scene::Background;
 use crate::{EngineError, Result};
 
 /// Architecture of the field.
@@ -49,12 +50,18 @@ pub struct FieldSamples {
 
 pub struct RadianceField {
     pub config: FieldConfig,
-    pub aabb: Aabb,
+    pub space: FieldSpace,
     pub grid: HashGrid,
     pub density_net: Mlp,
     pub colour_net: Mlp,
+    /// The learned background: SH of the view direction → colour (only for
+    /// [`Background::Learned`]).
+    pub background_net: Option<Mlp>,
     pub occupancy: OccupancyGrid,
 }
+
+/// Hidden width of the learned background's network.
+const BACKGROUND_HIDDEN: usize = 32;
 
 /// Largest raw density before the exponential (keeps σ finite in f32).
 const MAX_LOG_SIGMA: f64 = 15.0;
@@ -72,7 +79,12 @@ pub struct GeometryValues {
 }
 
 impl RadianceField {
-    pub fn new(config: FieldConfig, aabb: Aabb, rng: &mut Rng, device: &Device) -> Result<Self> {
+    pub fn new(
+        config: FieldConfig,
+        space: FieldSpace,
+        rng: &mut Rng,
+        device: &Device,
+    ) -> Result<Self> {
         let grid = HashGrid::new(config.grid, rng, device)?;
         let density_net = Mlp::new(
             "density",
@@ -97,13 +109,24 @@ impl RadianceField {
             DType::F32,
             device,
         )?;
+        let background_net = match space.background {
+            Background::Learned => Some(Mlp::new(
+                "background",
+                &[16, BACKGROUND_HIDDEN, 3],
+                rng,
+                DType::F32,
+                device,
+            )?),
+            Background::Colour(_) => None,
+        };
         Ok(Self {
             config,
-            aabb,
+            space,
             grid,
             density_net,
             colour_net,
-            occupancy: OccupancyGrid::new(config.occupancy_resolution, aabb),
+            background_net,
+            occupancy: OccupancyGrid::new(config.occupancy_resolution, space.aabb),
         })
     }
 
@@ -118,9 +141,13 @@ impl RadianceField {
         v
     }
 
-    /// Variables of the view-dependent colour head.
+    /// Variables of the view-dependent colour head and the learned background.
     pub fn colour_vars(&self) -> Vec<(String, Var)> {
-        self.colour_net.vars()
+        let mut v = self.colour_net.vars();
+        if let Some(net) = &self.background_net {
+            v.extend(net.vars());
+        }
+        v
     }
 
     pub fn vars(&self) -> Vec<(String, Var)> {
@@ -131,7 +158,8 @@ impl RadianceField {
 
     /// Normalised positions [N, 3] for packed field-space positions.
     pub fn points01(&self, positions: &[f32]) -> Result<Tensor> {
-        let p = hash_grid::normalise(positions, self.aabb.min, self.aabb.size());
+        let aabb = self.space.aabb;
+        let p = hash_grid::normalise(positions, aabb.min, aabb.size());
         Ok(Tensor::from_vec(
             p,
             (positions.len() / 3, 3),
@@ -242,6 +270,23 @@ impl RadianceField {
         Ok(candle_nn::ops::sigmoid(&self.colour_net.forward(&x)?)?)
     }
 
+    /// What rays that leave the content see: `[1, 3]` for a known colour, `[R, 3]` per view
+    /// direction for a learned background.
+    pub fn background(&self, view_dirs: &[glam::Vec3]) -> Result<Tensor> {
+        match (&self.background_net, self.space.background) {
+            (Some(net), _) => {
+                let sh: Vec<f32> = view_dirs.iter().flat_map(|d| sh16(d.to_array())).collect();
+                let x = Tensor::from_vec(sh, (view_dirs.len(), 16), self.device())?;
+                Ok(candle_nn::ops::sigmoid(&net.forward(&x)?)?)
+            }
+            (None, Background::Colour(c)) => Ok(Tensor::from_slice(&c, (1, 3), self.device())?),
+            (None, Background::Learned) => Err(EngineError::config(
+                "background",
+                "a learned background needs its network",
+            )),
+        }
+    }
+
     /// Refreshes the occupancy grid from the current density.
     pub fn update_occupancy(
         &mut self,
@@ -249,7 +294,8 @@ impl RadianceField {
         cells: usize,
         sigma_threshold: f32,
     ) -> Result<()> {
-        let mut grid = std::mem::replace(&mut self.occupancy, OccupancyGrid::new(1, self.aabb));
+        let mut grid =
+            std::mem::replace(&mut self.occupancy, OccupancyGrid::new(1, self.space.aabb));
         let res = grid.update(
             |p| self.density_values(p),
             rng,
@@ -297,7 +343,7 @@ impl RadianceField {
         }
         self.occupancy = OccupancyGrid::from_density(
             self.config.occupancy_resolution,
-            self.aabb,
+            self.space.aabb,
             density,
             sigma_threshold,
         );

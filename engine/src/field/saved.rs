@@ -10,10 +10,10 @@ use serde::{Deserialize, Serialize};
 use crate::camera::{Camera, Ndc};
 use crate::checkpoint::write_atomic;
 use crate::field::radiance::{FieldConfig, RadianceField};
+use crate::field::space::FieldSpace;
 use crate::render::march::RayBatch;
 use crate::render::SamplingConfig;
 use crate::rng::Rng;
-use crate::scene::Aabb;
 use crate::{EngineError, Result};
 
 /// Everything besides the weights that later stages need to use a field.
@@ -21,11 +21,11 @@ use crate::{EngineError, Result};
 pub struct FieldMeta {
     pub config: FieldConfig,
     pub sampling: SamplingConfig,
-    pub aabb: Aabb,
+    /// The field's box, contraction and background.
+    pub space: FieldSpace,
     pub near: f32,
     pub far: f32,
     pub ndc: Option<Ndc>,
-    pub background: [f32; 3],
     pub sigma_threshold: f32,
     /// Training cameras, in dataset order (the interpolated path follows them).
     pub train_cameras: Vec<Camera>,
@@ -64,7 +64,7 @@ pub fn load(dir: &Path, device: &Device) -> Result<(RadianceField, FieldMeta)> {
     let weights = dir.join("field.safetensors");
     let tensors = candle_core::safetensors::load(&weights, device)
         .map_err(|e| EngineError::artifact(&weights, format!("unreadable field weights: {e}")))?;
-    let mut field = RadianceField::new(meta.config, meta.aabb, &mut Rng::new(0), device)?;
+    let mut field = RadianceField::new(meta.config, meta.space, &mut Rng::new(0), device)?;
     field.load_tensors(&tensors, &weights, meta.sigma_threshold)?;
     Ok((field, meta))
 }

@@ -11,7 +11,7 @@
 
 use std::sync::Arc;
 
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, Device, Layout, Shape, Tensor, WithDType};
+use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor, WithDType};
 use rayon::prelude::*;
 
 use crate::cpu_ops::contiguous_slice;
@@ -26,6 +26,9 @@ pub struct PackedRays {
     pub deltas: Vec<f32>,
     /// Value averaged into the depth output (z-depth in world units).
     pub depths: Vec<f32>,
+    /// Field-space distance along the ray to the start of each sample's interval (the
+    /// distortion loss's coordinate; gaps where empty cells were skipped included).
+    pub distances: Vec<f32>,
 }
 
 impl PackedRays {
@@ -262,16 +265,15 @@ impl CustomOp3 for CompositeBackward {
 }
 
 /// Adds the background where the ray is not opaque: rgb + (1 − opacity) · background.
-/// `out` is the [R, 5] composite; returns ([R, 3] colour, [R] depth, [R] opacity).
+/// `out` is the [R, 5] composite and `background` `[1, 3]` or `[R, 3]`; returns ([R, 3]
+/// colour, [R] depth, [R] opacity).
 pub fn split_with_background(
     out: &Tensor,
-    background: [f32; 3],
+    background: &Tensor,
 ) -> Result<(Tensor, Tensor, Tensor)> {
     let rgb = out.narrow(1, 0, 3)?;
     let opacity = out.narrow(1, 4, 1)?;
-    let bg = Tensor::from_slice(&background, (1, 3), &Device::Cpu)?
-        .to_dtype(out.dtype())?
-        .to_device(out.device())?;
+    let bg = background.to_dtype(out.dtype())?;
     let colour = (rgb + (1.0 - &opacity)?.broadcast_mul(&bg)?)?;
     Ok((
         colour,
@@ -284,7 +286,7 @@ pub fn split_with_background(
 mod tests {
     use super::*;
     use crate::rng::Rng;
-    use candle_core::Var;
+    use candle_core::{Device, Var};
 
     fn batch(rng: &mut Rng) -> Arc<PackedRays> {
         let mut rays = PackedRays {
@@ -390,12 +392,14 @@ mod tests {
             offsets: vec![0, 2],
             deltas: vec![1.0, 1.0],
             depths: vec![2.0, 3.0],
+            distances: vec![0.0, 1.0],
         });
         let dev = Device::Cpu;
         let sigma = Tensor::new(&[1e4f32, 0.0], &dev).unwrap();
         let rgb = Tensor::new(&[[0.2f32, 0.4, 0.6], [1.0, 1.0, 1.0]], &dev).unwrap();
         let out = composite(&sigma, &rgb, &rays).unwrap();
-        let (c, d, o) = split_with_background(&out, [1.0, 0.0, 0.0]).unwrap();
+        let bg = Tensor::new(&[[1.0f32, 0.0, 0.0]], &Device::Cpu).unwrap();
+        let (c, d, o) = split_with_background(&out, &bg).unwrap();
         assert_eq!(c.to_vec2::<f32>().unwrap(), vec![vec![0.2, 0.4, 0.6]]);
         assert_eq!(
             (

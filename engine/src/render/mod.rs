@@ -2,6 +2,7 @@
 //! opaque surfaces, evaluating the field, compositing, and whole images in chunks.
 
 pub mod composite;
+pub mod distortion;
 pub mod march;
 
 use std::sync::Arc;
@@ -10,7 +11,7 @@ use candle_core::Tensor;
 use serde::{Deserialize, Serialize};
 
 use crate::field::radiance::{FieldSamples, RadianceField};
-use crate::render::composite::{composite, split_with_background};
+use crate::render::composite::{composite, split_with_background, PackedRays};
 use crate::render::march::{early_stop_mask, march, RayBatch, Samples};
 use crate::rng::Rng;
 use crate::Result;
@@ -36,6 +37,9 @@ pub struct RenderOutput {
     pub opacity: Tensor,
     /// Samples evaluated with gradients.
     pub num_samples: usize,
+    /// σ of the evaluated samples [S] and their packing (for regularisers on the weights);
+    /// `None` when no ray had a sample.
+    pub samples: Option<(Tensor, Arc<PackedRays>)>,
 }
 
 /// The colour of evaluated samples: the field's own colour head, or a style module.
@@ -50,23 +54,29 @@ pub fn step_size(field: &RadianceField, rays: &RayBatch, cfg: &SamplingConfig) -
     {
         rays.far - rays.near
     } else {
-        field.aabb.size().length()
+        field.space.aabb.size().length()
     };
     span / cfg.steps_per_diagonal as f32
 }
 
-/// Renders `rays` through `field` with colours from `colour`. With `rng`, sample positions are
+/// Renders `rays` through `field` with colours from `colour` over the field's background. With `rng`, sample positions are
 /// jittered (training).
 pub fn render_rays(
     field: &RadianceField,
     rays: &RayBatch,
     cfg: &SamplingConfig,
-    background: [f32; 3],
     colour: &ColourFn,
     rng: Option<&mut Rng>,
 ) -> Result<RenderOutput> {
     let step = step_size(field, rays, cfg);
-    let marched = march(rays, &field.occupancy, step, cfg.max_samples_per_ray, rng);
+    let marched = march(
+        rays,
+        &field.occupancy,
+        field.space.contraction.as_ref(),
+        step,
+        cfg.max_samples_per_ray,
+        rng,
+    );
     // A cheap gradient-free density pass finds where each ray becomes opaque.
     let sigma = field.density_values(&marched.positions)?;
     let samples = marched.filter(&early_stop_mask(&marched, &sigma, cfg.early_stop_eps));
@@ -75,7 +85,7 @@ pub fn render_rays(
     } else {
         Some(field.samples(&samples, &rays.view_dirs)?)
     };
-    finish(field, rays, &samples, evaluated, background, colour)
+    finish(field, rays, &samples, evaluated, colour)
 }
 
 /// [`render_rays`] for inference: no jitter and no gradients, so the one density pass that
@@ -84,11 +94,17 @@ fn render_rays_inference(
     field: &RadianceField,
     rays: &RayBatch,
     cfg: &SamplingConfig,
-    background: [f32; 3],
     colour: &ColourFn,
 ) -> Result<RenderOutput> {
     let step = step_size(field, rays, cfg);
-    let marched = march(rays, &field.occupancy, step, cfg.max_samples_per_ray, None);
+    let marched = march(
+        rays,
+        &field.occupancy,
+        field.space.contraction.as_ref(),
+        step,
+        cfg.max_samples_per_ray,
+        None,
+    );
     let values = field.geometry_values(&marched.positions)?;
     let keep = early_stop_mask(&marched, &values.sigma, cfg.early_stop_eps);
     let samples = marched.filter(&keep);
@@ -97,7 +113,7 @@ fn render_rays_inference(
     } else {
         Some(field.kept_samples(&values, &keep, &samples, &rays.view_dirs)?)
     };
-    finish(field, rays, &samples, evaluated, background, colour)
+    finish(field, rays, &samples, evaluated, colour)
 }
 
 /// Colours and composites the evaluated samples of `rays` (none: every ray is background).
@@ -106,22 +122,28 @@ fn finish(
     rays: &RayBatch,
     samples: &Samples,
     evaluated: Option<FieldSamples>,
-    background: [f32; 3],
     colour: &ColourFn,
 ) -> Result<RenderOutput> {
-    let out = match evaluated {
-        None => Tensor::zeros((rays.len(), 5), candle_core::DType::F32, field.device())?,
+    let (out, sampled) = match evaluated {
+        None => (
+            Tensor::zeros((rays.len(), 5), candle_core::DType::F32, field.device())?,
+            None,
+        ),
         Some(evaluated) => {
             let rgb = colour(&evaluated)?;
-            composite(&evaluated.sigma, &rgb, &Arc::new(samples.packed.clone()))?
+            let packed = Arc::new(samples.packed.clone());
+            let out = composite(&evaluated.sigma, &rgb, &packed)?;
+            (out, Some((evaluated.sigma, packed)))
         }
     };
-    let (rgb, depth, opacity) = split_with_background(&out, background)?;
+    let background = field.background(&rays.view_dirs)?;
+    let (rgb, depth, opacity) = split_with_background(&out, &background)?;
     Ok(RenderOutput {
         rgb,
         depth,
         opacity,
         num_samples: samples.ray.len(),
+        samples: sampled,
     })
 }
 
@@ -138,7 +160,6 @@ pub fn render_image(
     field: &RadianceField,
     rays: &RayBatch,
     cfg: &SamplingConfig,
-    background: [f32; 3],
     colour: &ColourFn,
     chunk: usize,
 ) -> Result<ImageOutput> {
@@ -149,7 +170,7 @@ pub fn render_image(
     };
     let idx: Vec<usize> = (0..rays.len()).collect();
     for part in idx.chunks(chunk.max(1)) {
-        let out = render_rays_inference(field, &rays.select(part), cfg, background, colour)?;
+        let out = render_rays_inference(field, &rays.select(part), cfg, colour)?;
         img.rgb
             .extend(out.rgb.detach().flatten_all()?.to_vec1::<f32>()?);
         let opacity: Vec<f32> = out.opacity.detach().to_vec1()?;

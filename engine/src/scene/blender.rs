@@ -44,8 +44,9 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
     let split_file = test_file.as_deref().unwrap_or(&train_file);
     require_split(&split, opts, split_file, "frames")?;
 
-    let background = opts.background_or(None);
-    let (frames, split) = frames::load(specs, split, opts, background)?;
+    // NeRF-synthetic images are RGBA renders on a transparent background.
+    let background = opts.background_or(None, true);
+    let (frames, split) = frames::load(specs, split, opts, background.alpha_colour())?;
     Ok(Scene {
         root,
         frames,
@@ -58,6 +59,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
         near: NEAR,
         far: FAR,
         ndc: None,
+        unbounded: false,
         background,
     })
 }

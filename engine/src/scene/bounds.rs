@@ -44,6 +44,19 @@ pub(crate) fn near_far(cameras: &[Pose], aabb: &Aabb) -> (f32, f32) {
     (near, (farthest + radius).max(near * 2.0))
 }
 
+/// Near and far for an unbounded capture: near as for [`near_far`]; far where the field's
+/// contraction of space around `aabb` ends (see [`crate::field::space::Contraction`]).
+pub(crate) fn near_far_unbounded(cameras: &[Pose], aabb: &Aabb) -> (f32, f32) {
+    let (near, _) = near_far(cameras, aabb);
+    let half = aabb.size().max_element() * 0.5;
+    let farthest = cameras
+        .iter()
+        .map(|c| (c.0 - aabb.center()).length())
+        .fold(0.0, f32::max);
+    let reach = crate::field::space::Contraction::REACH * half * 3f32.sqrt();
+    (near, farthest + reach)
+}
+
 /// Least-squares point nearest to all camera axes, or `None` when they are (nearly) parallel.
 fn axes_centre(cameras: &[Pose]) -> Option<Vec3> {
     let mut a = Mat3::ZERO;

@@ -146,12 +146,12 @@ pub(crate) fn load(
     let selected: Vec<FrameSpec> = used.iter().filter_map(|&i| specs[i].take()).collect();
     let frames = selected
         .into_par_iter()
-        .map(|spec| load_frame(spec, opts.downscale, background))
+        .map(|spec| load_frame(spec, opts, background))
         .collect::<Result<Vec<_>>>()?;
     Ok((frames, split))
 }
 
-fn load_frame(spec: FrameSpec, downscale: u32, background: [f32; 3]) -> Result<Frame> {
+fn load_frame(spec: FrameSpec, opts: &LoadOptions, background: [f32; 3]) -> Result<Frame> {
     let origin = Origin {
         file: &spec.source,
         field: &spec.field,
@@ -192,11 +192,7 @@ fn load_frame(spec: FrameSpec, downscale: u32, background: [f32; 3]) -> Result<F
     if !distortion.is_identity() {
         image = distortion.undistort_rgb(&image, &k);
     }
-    let target = if downscale > 1 {
-        k.scaled(1.0 / downscale as f32)
-    } else {
-        k
-    };
+    let target = working_intrinsics(&k, opts);
     let image = images::resize_rgb(&image, target.width, target.height);
     let depth = spec
         .depth
@@ -236,9 +232,48 @@ fn load_frame(spec: FrameSpec, downscale: u32, background: [f32; 3]) -> Result<F
     })
 }
 
+/// The intrinsics a frame is trained at: shrunk by `downscale`, then to at most `max_side`
+/// pixels on its longest side (one resize, so the two never round twice).
+pub(crate) fn working_intrinsics(k: &Intrinsics, opts: &LoadOptions) -> Intrinsics {
+    let mut factor = 1.0 / opts.downscale.max(1) as f32;
+    let longest = k.width.max(k.height) as f32;
+    if let Some(side) = opts.max_side {
+        factor = factor.min(side as f32 / longest);
+    }
+    if factor < 1.0 {
+        k.scaled(factor)
+    } else {
+        *k
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn working_resolution_caps_the_longest_side() {
+        let k = Intrinsics {
+            fx: 1375.0,
+            fy: 1374.0,
+            cx: 554.0,
+            cy: 965.0,
+            width: 1080,
+            height: 1920,
+        };
+        let opts = |downscale, max_side| LoadOptions {
+            downscale,
+            max_side,
+            ..LoadOptions::default()
+        };
+        let w = working_intrinsics(&k, &opts(1, Some(240)));
+        assert_eq!((w.width, w.height), (135, 240));
+        assert!((w.fx - 1375.0 / 8.0).abs() < 0.01 && (w.cy - 965.0 / 8.0).abs() < 0.01);
+        // The smaller of the two wins; neither enlarges.
+        let w = working_intrinsics(&k, &opts(2, Some(1000)));
+        assert_eq!((w.width, w.height), (540, 960));
+        assert_eq!(working_intrinsics(&k, &opts(1, Some(4000))), k);
+    }
 
     #[test]
     fn every_eighth_frame_is_test() {

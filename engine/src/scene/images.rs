@@ -28,6 +28,16 @@ fn decode(path: &Path, origin: Origin) -> Result<DynamicImage> {
         .map_err(|e| origin.err(format!("cannot decode {}: {e}", path.display())))
 }
 
+/// Whether the image file has an alpha channel (reads the header only); `false` when it
+/// cannot be read (loading it reports why).
+pub(crate) fn has_alpha(path: &Path) -> bool {
+    image::ImageReader::open(path)
+        .and_then(|r| r.with_guessed_format())
+        .ok()
+        .and_then(|r| r.into_decoder().ok())
+        .is_some_and(|d| image::ImageDecoder::color_type(&d).has_alpha())
+}
+
 /// Reads an image as RGB in [0, 1] (values as stored, no gamma decoding), compositing any
 /// alpha channel on `background`.
 pub(crate) fn read_rgb(path: &Path, origin: Origin, background: [f32; 3]) -> Result<Rgb32FImage> {
@@ -48,8 +58,30 @@ pub(crate) fn read_rgb(path: &Path, origin: Origin, background: [f32; 3]) -> Res
     }))
 }
 
-/// Reads a 16-bit grayscale depth PNG as depth in world units (`raw × scale`; 0 = unknown).
+/// Reads a depth map as depth in world units (`raw × scale`; 0 = unknown): a 16-bit grayscale
+/// PNG, or a NumPy `.npy` array of shape (H, W) (float or uint16; NaN, infinite and negative
+/// values are unknown), as nerfstudio reads them.
 pub(crate) fn read_depth(path: &Path, origin: Origin, scale: f32) -> Result<(u32, u32, Vec<f32>)> {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("npy"))
+    {
+        let m = super::npy::read_matrix(path)
+            .map_err(|e| origin.err(format!("depth map {}: {e}", path.display())))?;
+        let depth = m
+            .data
+            .iter()
+            .map(|&d| {
+                let d = d as f32 * scale;
+                if d.is_finite() && d > 0.0 {
+                    d
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        return Ok((m.cols as u32, m.rows as u32, depth));
+    }
     match decode(path, origin)? {
         DynamicImage::ImageLuma16(img) => {
             let (w, h) = img.dimensions();
@@ -63,7 +95,7 @@ pub(crate) fn read_depth(path: &Path, origin: Origin, scale: f32) -> Result<(u32
             ))
         }
         other => Err(origin.err(format!(
-            "{}: expected a 16-bit grayscale depth PNG, found {:?}",
+            "{}: expected a 16-bit grayscale depth PNG (or a .npy array), found {:?}",
             path.display(),
             other.color()
         ))),

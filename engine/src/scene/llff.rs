@@ -92,12 +92,13 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
             position: row.position,
         }),
     );
-    let background = opts.background_or(None);
+    // Forward-facing photos: NDC already reaches infinity; what no content explains is learned.
+    let background = opts.background_or(None, false);
     let load_opts = LoadOptions {
         downscale: rest,
         ..opts.clone()
     };
-    let (frames, split) = frames::load(specs, split, &load_opts, background)?;
+    let (frames, split) = frames::load(specs, split, &load_opts, background.alpha_colour())?;
     Ok(Scene {
         root,
         frames,
@@ -107,6 +108,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
         near: 0.0,
         far: 1.0,
         ndc: Some(ndc),
+        unbounded: false,
         background,
     })
 }

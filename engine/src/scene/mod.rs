@@ -87,8 +87,44 @@ pub struct Scene {
     pub far: f32,
     /// Set for forward-facing scenes: rays are converted to NDC before meeting the field.
     pub ndc: Option<Ndc>,
-    /// Colour of empty space: rendered colour = Σ w c + (1 − opacity) · background.
-    pub background: [f32; 3],
+    /// Set for captures whose surroundings extend past `aabb` (photos without alpha and
+    /// without a stated box): the field covers all of space, contracted into twice the box
+    /// (see [`crate::field::space`]); `aabb` is then the region kept at full resolution.
+    pub unbounded: bool,
+    /// What rays that leave the content see: rendered colour = Σ w c + (1 − opacity) · bg.
+    pub background: Background,
+}
+
+/// What lies behind the scene content.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Background {
+    /// A known colour (RGBA datasets, or one the dataset or the user states): images with
+    /// alpha are composited on it and empty space renders as it.
+    Colour([f32; 3]),
+    /// Photos of a real background: its colour is learned as a function of the view
+    /// direction, so the photos need not be explained by haze in front of the content.
+    Learned,
+}
+
+impl Background {
+    /// The colour alpha channels are composited on (white when the background is learned: such
+    /// datasets have no alpha).
+    pub fn alpha_colour(&self) -> [f32; 3] {
+        match self {
+            Background::Colour(c) => *c,
+            Background::Learned => [1.0; 3],
+        }
+    }
+}
+
+impl fmt::Display for Background {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Background::Colour([r, g, b]) => write!(f, "colour ({r:.3}, {g:.3}, {b:.3})"),
+            Background::Learned => f.write_str("learned from the photos (view direction)"),
+        }
+    }
 }
 
 /// The dataset formats [`Scene::load`] understands.
@@ -188,8 +224,12 @@ pub struct LoadOptions {
     /// Keep at most this many frames, shared between the splits and evenly spaced.
     pub max_frames: Option<usize>,
     /// Background colour to composite RGBA images on and to render empty space with. `None`:
-    /// the dataset's own (`background` in a nerfstudio file), else white.
+    /// the dataset's own (`background` in a nerfstudio file); else white for RGBA images and
+    /// a learned background for photos without alpha.
     pub background: Option<[f32; 3]>,
+    /// Working resolution: shrink images (after `downscale`) so that their longest side is at
+    /// most this many pixels; intrinsics follow. `None`: full size.
+    pub max_side: Option<u32>,
 }
 
 impl Default for LoadOptions {
@@ -200,6 +240,7 @@ impl Default for LoadOptions {
             test_every: 8,
             max_frames: None,
             background: None,
+            max_side: None,
         }
     }
 }
@@ -212,6 +253,14 @@ impl LoadOptions {
         if self.max_frames == Some(0) {
             return Err(EngineError::config("max_frames", "must be at least 1"));
         }
+        if let Some(side) = self.max_side {
+            if !(MIN_SIDE..=MAX_SIDE).contains(&side) {
+                return Err(EngineError::config(
+                    "max_side",
+                    format!("{side}: must be between {MIN_SIDE} and {MAX_SIDE} pixels"),
+                ));
+            }
+        }
         if let Some(bg) = self.background {
             if !bg.iter().all(|c| (0.0..=1.0).contains(c)) {
                 return Err(EngineError::config(
@@ -223,10 +272,20 @@ impl LoadOptions {
         Ok(())
     }
 
-    fn background_or(&self, dataset: Option<[f32; 3]>) -> [f32; 3] {
-        self.background.or(dataset).unwrap_or([1.0; 3])
+    /// The background: the user's colour, else the dataset's, else learned for photos
+    /// without alpha (`has_alpha`), else white.
+    fn background_or(&self, dataset: Option<[f32; 3]>, has_alpha: bool) -> Background {
+        match self.background.or(dataset) {
+            Some(c) => Background::Colour(c),
+            None if has_alpha => Background::Colour([1.0; 3]),
+            None => Background::Learned,
+        }
     }
 }
+
+/// Bounds of [`LoadOptions::max_side`].
+pub const MIN_SIDE: u32 = 8;
+pub const MAX_SIDE: u32 = 16384;
 
 impl Scene {
     /// Loads the dataset at `path`: a folder, or a `transforms.json`,

@@ -11,7 +11,7 @@ use glam::Vec3;
 use super::distortion::Distortion;
 use super::frames::{self, DepthSpec, FrameSpec, IntrinsicsSpec, Split};
 use super::json::{self, Obj};
-use super::{bounds, paths, require_split, Aabb, LoadOptions, Scene};
+use super::{bounds, paths, require_split, Aabb, Background, LoadOptions, Scene};
 use crate::camera::Intrinsics;
 use crate::Result;
 
@@ -36,6 +36,7 @@ pub fn load(file: &Path, opts: &LoadOptions) -> Result<Scene> {
         return Err(top.err("depth_unit_scale_factor", "must be positive"));
     }
     let elements = top.objects("frames")?;
+    missing_images(&root, file, &elements)?;
     let specs = elements
         .iter()
         .map(|e| frame_spec(&root, &top, &e.obj(), model, depth_scale))
@@ -48,11 +49,28 @@ pub fn load(file: &Path, opts: &LoadOptions) -> Result<Scene> {
         .iter()
         .map(|s| (s.position, -s.rotation.z_axis))
         .collect();
-    let aabb = match top.opt_matrix("aabb")? {
-        Some(rows) => aabb(&rows).map_err(|r| top.err("aabb", r))?,
+    let stated_aabb = top.opt_matrix("aabb")?;
+    let aabb = match &stated_aabb {
+        Some(rows) => aabb(rows).map_err(|r| top.err("aabb", r))?,
         None => bounds::estimate_aabb(&poses),
     };
-    let (near_default, far_default) = bounds::near_far(&poses, &aabb);
+    let background = match top.opt_vec3("background")? {
+        Some(bg) if bg.min_element() < 0.0 || bg.max_element() > 1.0 => {
+            return Err(top.err("background", "components must be in [0, 1]"))
+        }
+        bg => {
+            let first = split.train.first().map(|&i| specs[i].image.as_path());
+            let alpha = first.is_some_and(super::images::has_alpha);
+            opts.background_or(bg.map(|v| v.to_array()), alpha)
+        }
+    };
+    // Photos of a real background with no stated box: the surroundings go on past any box.
+    let unbounded = background == Background::Learned && stated_aabb.is_none();
+    let (near_default, far_default) = if unbounded {
+        bounds::near_far_unbounded(&poses, &aabb)
+    } else {
+        bounds::near_far(&poses, &aabb)
+    };
     let near = top.opt_f32("near")?.unwrap_or(near_default);
     let far = top.opt_f32("far")?.unwrap_or(far_default);
     if near < 0.0 || far <= near {
@@ -61,14 +79,8 @@ pub fn load(file: &Path, opts: &LoadOptions) -> Result<Scene> {
             format!("need 0 ≤ near < far, found near {near}, far {far}"),
         ));
     }
-    let background = match top.opt_vec3("background")? {
-        Some(bg) if bg.min_element() < 0.0 || bg.max_element() > 1.0 => {
-            return Err(top.err("background", "components must be in [0, 1]"))
-        }
-        bg => opts.background_or(bg.map(|v| v.to_array())),
-    };
 
-    let (frames, split) = frames::load(specs, split, opts, background)?;
+    let (frames, split) = frames::load(specs, split, opts, background.alpha_colour())?;
     Ok(Scene {
         root,
         frames,
@@ -78,8 +90,41 @@ pub fn load(file: &Path, opts: &LoadOptions) -> Result<Scene> {
         near,
         far,
         ndc: None,
+        unbounded,
         background,
     })
+}
+
+/// One error naming every frame whose image file is missing (published captures often list
+/// frames whose images were dropped), instead of failing on the first.
+fn missing_images(root: &Path, file: &Path, frames: &[json::Element]) -> Result<()> {
+    let mut missing = Vec::new();
+    for (i, e) in frames.iter().enumerate() {
+        if let Ok(rel) = e.obj().str("file_path") {
+            if !rel.is_empty() && !root.join(rel).exists() {
+                missing.push(format!("{rel} (frames[{i}])"));
+            }
+        }
+    }
+    match missing.len() {
+        0 | 1 => Ok(()), // one missing file gets the precise per-frame error
+        n => {
+            const SHOWN: usize = 20;
+            let more = n.saturating_sub(SHOWN);
+            let mut list = missing[..n.min(SHOWN)].join(", ");
+            if more > 0 {
+                list.push_str(&format!(" and {more} more"));
+            }
+            Err(crate::EngineError::dataset(
+                file,
+                "frames[].file_path",
+                format!(
+                    "{n} of {} frames name an image that does not exist: {list}",
+                    frames.len()
+                ),
+            ))
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]

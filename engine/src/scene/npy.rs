@@ -1,5 +1,6 @@
-//! A minimal reader and writer for NumPy `.npy` files holding a 2-D little-endian float
-//! matrix in C order, which is what LLFF's `poses_bounds.npy` is.
+//! A minimal reader and writer for NumPy `.npy` files holding a 2-D little-endian matrix in C
+//! order: LLFF's `poses_bounds.npy` (float) and nerfstudio depth maps (float or uint16, shape
+//! (H, W) or (H, W, 1)).
 //!
 //! Format: the magic `\x93NUMPY`, a version byte pair, the header length (u16 in version 1,
 //! u32 in versions 2 and 3), an ASCII Python dict literal such as
@@ -25,7 +26,7 @@ impl Matrix {
     }
 }
 
-/// Reads a 2-D `<f8` or `<f4` array.
+/// Reads a 2-D `<f8`, `<f4` or `<u2` array (a trailing axis of length 1 is dropped).
 pub fn read_matrix(path: &Path) -> Result<Matrix> {
     let bytes = std::fs::read(path).map_err(|e| EngineError::io(path, e))?;
     let err = |field: &str, reason: String| EngineError::dataset(path, field, reason);
@@ -52,12 +53,13 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
     let item = match descr {
         "<f8" => 8,
         "<f4" => 4,
+        "<u2" => 2,
         other => {
             return Err(err(
                 "descr",
                 format!(
-                    "unsupported dtype `{other}`: expected little-endian float64 `<f8` or \
-                     float32 `<f4`"
+                    "unsupported dtype `{other}`: expected little-endian float64 `<f8`, \
+                     float32 `<f4` or uint16 `<u2`"
                 ),
             ))
         }
@@ -83,7 +85,7 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
             format!("missing or malformed in header {header:?}"),
         )
     })?;
-    let [rows, cols] = shape[..] else {
+    let (&[rows, cols] | &[rows, cols, 1]) = &shape[..] else {
         return Err(err(
             "shape",
             format!("expected a 2-D array, found shape {shape:?}"),
@@ -103,14 +105,19 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
             ),
         ));
     }
-    let data = if item == 8 {
-        raw.chunks_exact(8)
+    let data = match item {
+        8 => raw
+            .chunks_exact(8)
             .map(|c| f64::from_le_bytes(c.try_into().expect("8-byte chunk")))
-            .collect()
-    } else {
-        raw.chunks_exact(4)
+            .collect(),
+        4 => raw
+            .chunks_exact(4)
             .map(|c| f32::from_le_bytes(c.try_into().expect("4-byte chunk")) as f64)
-            .collect()
+            .collect(),
+        _ => raw
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]) as f64)
+            .collect(),
     };
     Ok(Matrix { rows, cols, data })
 }

@@ -15,18 +15,23 @@ use crate::checkpoint::{write_atomic, CheckpointDir};
 use crate::field::hash_grid::HashGridConfig;
 use crate::field::radiance::{FieldConfig, RadianceField};
 use crate::field::saved::{self, FieldMeta};
+use crate::field::space::FieldSpace;
 use crate::optim::{Adam, AdamConfig, LrSchedule};
 use crate::preset::Preset;
+use crate::render::distortion::distortion_loss;
 use crate::render::march::RayBatch;
 use crate::render::{render_image, render_rays, step_size, SamplingConfig};
 use crate::rng::Rng;
-use crate::scene::Scene;
+use crate::scene::{Background, LoadOptions, Scene};
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::{EngineError, Result};
 
 /// Training configuration of the field.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NerfConfig {
+    /// Working resolution: photos are shrunk so their longest side is at most this many
+    /// pixels (`None`: full size). Every later stage renders at the size trained at.
+    pub max_side: Option<u32>,
     pub field: FieldConfig,
     pub sampling: SamplingConfig,
     pub steps: u64,
@@ -48,6 +53,14 @@ pub struct NerfConfig {
     pub seed: u64,
     /// Rays per chunk when rendering whole images.
     pub render_chunk: usize,
+    /// Weight of mip-NeRF 360's distortion loss (see [`crate::render::distortion`]): keeps each
+    /// ray's weight in one short stretch instead of haze along it. Applied when the
+    /// background is learned (a known colour already makes haze cost).
+    pub distortion: f64,
+    /// Weight of the binary entropy of each ray's opacity: pushes rays to be either opaque
+    /// or empty, so a real background is left to the background model instead of haze.
+    /// Applied when the background is learned.
+    pub opacity_entropy: f64,
     /// Measure test PSNR every this many steps (0: only at the end); the time spent measuring
     /// is not counted as training time.
     pub eval_every: u64,
@@ -75,25 +88,30 @@ impl NerfConfig {
             max_samples_per_ray,
             early_stop_eps: 1e-4,
         };
-        let base = |field, sampling, steps, rays_per_batch, samples_per_batch| NerfConfig {
-            field,
-            sampling,
-            steps,
-            rays_per_batch,
-            samples_per_batch,
-            lr: 1e-2,
-            lr_final_ratio: 0.05,
-            warmup_steps: 20,
-            occupancy_warmup: 32,
-            occupancy_every: 16,
-            occupancy_full_until: 256,
-            occupancy_alpha: 0.01,
-            seed: 0,
-            render_chunk: 8192,
-            eval_every: 0,
-        };
+        let base =
+            |max_side, field, sampling, steps, rays_per_batch, samples_per_batch| NerfConfig {
+                max_side: Some(max_side),
+                field,
+                sampling,
+                steps,
+                rays_per_batch,
+                samples_per_batch,
+                lr: 1e-2,
+                lr_final_ratio: 0.05,
+                warmup_steps: 20,
+                occupancy_warmup: 32,
+                occupancy_every: 16,
+                occupancy_full_until: 256,
+                occupancy_alpha: 0.01,
+                seed: 0,
+                render_chunk: 8192,
+                opacity_entropy: 2e-3,
+                distortion: 2e-3,
+                eval_every: 0,
+            };
         match preset {
             Preset::Tiny => base(
+                128,
                 field(grid(8, 14, 4.0, 64.0), 32, 32),
                 sampling(128, 128),
                 150,
@@ -101,6 +119,7 @@ impl NerfConfig {
                 1 << 15,
             ),
             Preset::Quick => base(
+                240,
                 field(grid(16, 16, 16.0, 512.0), 64, 64),
                 sampling(384, 512),
                 400,
@@ -108,6 +127,7 @@ impl NerfConfig {
                 1 << 17,
             ),
             Preset::Standard => base(
+                480,
                 field(grid(16, 19, 16.0, 1024.0), 64, 128),
                 sampling(512, 1024),
                 10_000,
@@ -115,12 +135,23 @@ impl NerfConfig {
                 1 << 18,
             ),
             Preset::Paper => base(
+                1024,
                 field(grid(16, 19, 16.0, 2048.0), 64, 128),
                 sampling(1024, 1024),
                 30_000,
                 16384,
                 1 << 18,
             ),
+        }
+    }
+}
+
+impl NerfConfig {
+    /// How to load the scene for this configuration (its working resolution).
+    pub fn load_options(&self) -> LoadOptions {
+        LoadOptions {
+            max_side: self.max_side,
+            ..LoadOptions::default()
         }
     }
 }
@@ -135,8 +166,22 @@ pub struct NerfReport {
     /// Mean absolute depth error on test pixels with opacity > 0.5 (world units), when the
     /// dataset has ground-truth depth.
     pub depth_mae: Option<f64>,
-    /// `depth_mae` divided by the largest side of the scene box.
+    /// `depth_mae` divided by the largest side of the content box.
     pub depth_mae_relative: Option<f64>,
+    /// Median of |rendered − true| / true depth over the same pixels.
+    pub depth_median_relative_error: Option<f64>,
+    /// Mean rendered opacity of test pixels whose ground truth sees nothing (depth 0: a
+    /// background at infinity); 0 is right, haze raises it.
+    pub empty_opacity: Option<f64>,
+    /// Mean field samples per ray while training (after occupancy and early-stop pruning).
+    #[serde(default)]
+    pub samples_per_ray: f64,
+    /// Fraction of occupancy cells occupied at the end.
+    #[serde(default)]
+    pub occupied_fraction: f64,
+    /// Working resolution trained at (width, height of the first frame).
+    #[serde(default)]
+    pub resolution: (u32, u32),
     pub train_seconds: f64,
     /// Field samples evaluated with gradients per second of training.
     pub samples_per_second: f64,
@@ -155,6 +200,7 @@ struct CheckpointMeta {
     psnr_curve: Vec<(u64, f64, f64)>,
     train_seconds: f64,
     samples: u64,
+    rays: u64,
     batch_rays: usize,
 }
 
@@ -177,6 +223,14 @@ fn training_rays(scene: &Scene) -> (RayBatch, Vec<f32>) {
         colours.extend_from_slice(frame.image.as_raw());
     }
     (rays, colours)
+}
+
+/// Mean binary entropy of opacities [R] (clamped away from 0 and 1, where it has no slope).
+fn opacity_entropy(opacity: &candle_core::Tensor) -> Result<candle_core::Tensor> {
+    let o = opacity.clamp(1e-4, 1.0 - 1e-4)?;
+    let q = (1.0 - &o)?;
+    let h = ((&o * o.log()?)? + (&q * q.log()?)?)?.neg()?;
+    Ok(h.mean_all()?)
 }
 
 /// Next batch size: scale the ray count so the evaluated samples approach the target.
@@ -209,7 +263,7 @@ pub fn run(
     }
     let (rays, colours) = training_rays(scene);
     let mut rng = Rng::new(cfg.seed);
-    let mut field = RadianceField::new(cfg.field, scene.aabb, &mut rng, device)?;
+    let mut field = RadianceField::new(cfg.field, FieldSpace::for_scene(scene), &mut rng, device)?;
     let threshold = sigma_threshold(&field, &rays, cfg);
     let mut adam = Adam::new(
         field.vars(),
@@ -232,6 +286,7 @@ pub fn run(
     let mut loss_log = Vec::new();
     let mut psnr_curve = Vec::new();
     let mut samples_total = 0u64;
+    let mut rays_total = 0u64;
     let mut seconds_before = 0.0;
     if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
         let source = ckpt.path().join(format!("step-{:08}.safetensors", c.step));
@@ -242,6 +297,7 @@ pub fn run(
         loss_log = c.meta.loss_log;
         psnr_curve = c.meta.psnr_curve;
         samples_total = c.meta.samples;
+        rays_total = c.meta.rays;
         batch_rays = c.meta.batch_rays;
         seconds_before = c.meta.train_seconds;
         tracing::info!(step = start, "nerf_pretrain: resuming from checkpoint");
@@ -269,28 +325,36 @@ pub fn run(
             &field,
             &batch,
             &cfg.sampling,
-            scene.background,
             &|s| field.colour(s),
             Some(&mut rng),
         )?;
-        let loss = (out.rgb - target)?.sqr()?.mean_all()?;
+        let mse = (out.rgb - target)?.sqr()?.mean_all()?;
+        let mut loss = mse.clone();
+        let learned = scene.background == Background::Learned;
+        if learned && cfg.opacity_entropy > 0.0 {
+            loss = (loss + (opacity_entropy(&out.opacity)? * cfg.opacity_entropy)?)?;
+        }
+        if let (true, Some((sigma, packed))) = (learned && cfg.distortion > 0.0, &out.samples) {
+            loss = (loss + (distortion_loss(sigma, packed)? * cfg.distortion)?)?;
+        }
         let grads = loss.backward()?;
         adam.step(&grads, schedule.at(step))?;
         samples_total += out.num_samples as u64;
+        rays_total += idx.len() as u64;
         batch_rays = adapt_batch(batch_rays, out.num_samples, cfg);
         let done = step + 1;
         if cfg.eval_every > 0 && done % cfg.eval_every == 0 && done < cfg.steps {
             let seconds = seconds_before + started.elapsed().as_secs_f64();
             let eval_started = Instant::now();
-            let (psnr, _) = evaluate(scene, &field, &field_meta(scene, cfg, threshold), cfg, None)?;
-            if let Some(psnr) = psnr {
+            let eval = evaluate(scene, &field, &field_meta(scene, cfg, threshold), cfg, None)?;
+            if let Some(psnr) = eval.psnr {
                 tracing::info!(step = done, seconds, psnr, "nerf_pretrain: test PSNR");
                 psnr_curve.push((done, seconds, psnr));
             }
             started += eval_started.elapsed();
         }
         if done % 10 == 0 || done == cfg.steps {
-            let l = loss.to_scalar::<f32>()?;
+            let l = mse.to_scalar::<f32>()?;
             loss_log.push((done, l));
             let mut p = Progress {
                 stage: "nerf_pretrain".into(),
@@ -325,6 +389,7 @@ pub fn run(
                 psnr_curve: psnr_curve.clone(),
                 train_seconds: seconds_before + started.elapsed().as_secs_f64(),
                 samples: samples_total,
+                rays: rays_total,
                 batch_rays,
             };
             ckpt.save(done, &tensors, &meta)?;
@@ -339,17 +404,23 @@ pub fn run(
     }
     let train_seconds = seconds_before + started.elapsed().as_secs_f64();
     let meta = field_meta(scene, cfg, threshold);
-    let (test_psnr, depth) = evaluate(scene, &field, &meta, cfg, Some(&out.join("test")))?;
+    let eval = evaluate(scene, &field, &meta, cfg, Some(&out.join("test")))?;
+    let (test_psnr, depth) = (eval.psnr, eval.depth_mae);
     if let Some(psnr) = test_psnr {
         psnr_curve.push((cfg.steps, train_seconds, psnr));
     }
-    let extent = scene.aabb.size().max_element() as f64;
+    let extent = field.space.content_extent() as f64;
     let report = NerfReport {
         steps: cfg.steps,
         resumed_from: start,
         test_psnr,
         depth_mae: depth,
         depth_mae_relative: depth.map(|d| d / extent),
+        depth_median_relative_error: eval.depth_median_relative,
+        empty_opacity: eval.empty_opacity,
+        samples_per_ray: samples_total as f64 / rays_total.max(1) as f64,
+        occupied_fraction: field.occupancy.occupied_fraction() as f64,
+        resolution: scene.resolution(),
         train_seconds,
         samples_per_second: samples_total as f64 / train_seconds.max(1e-9),
         loss_log,
@@ -377,11 +448,10 @@ fn field_meta(scene: &Scene, cfg: &NerfConfig, sigma_threshold: f32) -> FieldMet
     FieldMeta {
         config: cfg.field,
         sampling: cfg.sampling,
-        aabb: scene.aabb,
+        space: FieldSpace::for_scene(scene),
         near: scene.near,
         far: scene.far,
         ndc: scene.ndc,
-        background: scene.background,
         sigma_threshold,
         train_cameras: scene
             .train
@@ -393,17 +463,27 @@ fn field_meta(scene: &Scene, cfg: &NerfConfig, sigma_threshold: f32) -> FieldMet
     }
 }
 
-/// Renders the test views: mean PSNR and, with ground truth, mean absolute depth error.
-/// With `images`, the renders are saved there as PNGs.
+/// What [`evaluate`] measures on the test views.
+struct TestMetrics {
+    psnr: Option<f64>,
+    depth_mae: Option<f64>,
+    depth_median_relative: Option<f64>,
+    empty_opacity: Option<f64>,
+}
+
+/// Renders the test views: mean PSNR and, with ground truth, depth errors and the opacity
+/// where the truth sees nothing. With `images`, the renders are saved there as PNGs.
 fn evaluate(
     scene: &Scene,
     field: &RadianceField,
     meta: &FieldMeta,
     cfg: &NerfConfig,
     images: Option<&Path>,
-) -> Result<(Option<f64>, Option<f64>)> {
+) -> Result<TestMetrics> {
     let mut psnrs = Vec::new();
     let (mut depth_err, mut depth_count) = (0.0f64, 0usize);
+    let mut relative = Vec::new();
+    let (mut empty, mut empty_count) = (0.0f64, 0usize);
     for &i in &scene.test {
         let frame = &scene.frames[i];
         let k = frame.camera.intrinsics;
@@ -411,7 +491,6 @@ fn evaluate(
             field,
             &meta.camera_rays(&frame.camera),
             &cfg.sampling,
-            scene.background,
             &|s| field.colour(s),
             cfg.render_chunk,
         )?;
@@ -428,6 +507,10 @@ fn evaluate(
                 if *o > 0.5 && *g > 0.0 {
                     depth_err += (d - g).abs() as f64;
                     depth_count += 1;
+                    relative.push(((d - g) / g).abs());
+                } else if *g == 0.0 {
+                    empty += *o as f64;
+                    empty_count += 1;
                 }
             }
         }
@@ -442,9 +525,21 @@ fn evaluate(
                 k.height,
                 &img.rgb,
             )?;
+            // Opacity as grey levels: haze in front of a real background shows at a glance.
+            let grey: Vec<f32> = img.opacity.iter().flat_map(|&o| [o; 3]).collect();
+            crate::image_io::save_rgb_png(
+                &dir.join(format!("{name}.opacity.png")),
+                k.width,
+                k.height,
+                &grey,
+            )?;
         }
     }
-    let psnr = (!psnrs.is_empty()).then(|| psnrs.iter().sum::<f64>() / psnrs.len() as f64);
-    let depth = (depth_count > 0).then(|| depth_err / depth_count as f64);
-    Ok((psnr, depth))
+    relative.sort_by(f32::total_cmp);
+    Ok(TestMetrics {
+        psnr: (!psnrs.is_empty()).then(|| psnrs.iter().sum::<f64>() / psnrs.len() as f64),
+        depth_mae: (depth_count > 0).then(|| depth_err / depth_count as f64),
+        depth_median_relative: relative.get(relative.len() / 2).map(|&r| r as f64),
+        empty_opacity: (empty_count > 0).then(|| empty / empty_count as f64),
+    })
 }

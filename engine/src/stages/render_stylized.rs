@@ -300,7 +300,6 @@ fn path_frames(
                 &field,
                 &meta.camera_rays(&cam),
                 &meta.sampling,
-                meta.background,
                 &|s| field.colour(s),
                 8192,
             )?;

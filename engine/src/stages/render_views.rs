@@ -127,7 +127,6 @@ pub fn run(
             &field,
             &meta.camera_rays(&camera),
             &meta.sampling,
-            meta.background,
             &|s| field.colour(s),
             cfg.chunk,
         )?;

@@ -1,7 +1,8 @@
 //! Procedural test scenes: a small ray tracer that renders a textured table-top world (a
-//! checkered floor square with spheres, boxes, a cylinder and a torus, hard shadows) from a
-//! ring of cameras or a forward-facing grid, and writes it as a nerfstudio dataset with
-//! ground-truth depth (plus LLFF `poses_bounds.npy` for the forward-facing kind).
+//! checkered floor square with spheres, boxes, a cylinder and a torus, hard shadows) on a
+//! solid colour, under a sky at infinity or inside a room, from a ring of cameras or a
+//! forward-facing grid, and writes it as a nerfstudio dataset with ground-truth depth (plus
+//! LLFF `poses_bounds.npy` for the forward-facing kind).
 //!
 //! Output is a pure function of [`GenerateOptions`]: the same options give the same bytes.
 
@@ -21,6 +22,7 @@ use super::npy::{self, Matrix};
 use super::{bounds, Aabb};
 use crate::camera::{Camera, Intrinsics};
 use crate::{EngineError, Result};
+pub use world::Surroundings;
 use world::{View, World, BACKGROUND};
 
 /// Where the cameras are.
@@ -46,6 +48,9 @@ pub struct GenerateOptions {
     pub views: usize,
     /// Seed of the layout, colours, patterns and light.
     pub seed: u64,
+    /// What surrounds the table-top. Only `plain` states its background (and every kind but
+    /// `room` its box) in the dataset, as a capture of an object on a known backdrop would.
+    pub surroundings: Surroundings,
 }
 
 impl Default for GenerateOptions {
@@ -55,6 +60,7 @@ impl Default for GenerateOptions {
             size: 128,
             views: 48,
             seed: 7,
+            surroundings: Surroundings::Plain,
         }
     }
 }
@@ -98,15 +104,19 @@ pub fn generate(opts: &GenerateOptions, out: &Path) -> Result<()> {
         std::fs::create_dir_all(out.join(dir)).map_err(|e| EngineError::io(out.join(dir), e))?;
     }
 
-    let world = World::new(opts.seed);
+    let world = World::new(opts.seed, opts.surroundings);
     let cameras = match opts.rig {
         CameraRig::Orbit => orbit(opts.size, opts.views),
         CameraRig::Forward => forward(opts.size, opts.views),
     };
     let poses: Vec<bounds::Pose> = cameras.iter().map(|c| (c.position, c.forward())).collect();
     let (near, far) = bounds::near_far(&poses, &AABB);
-    // Finest depth unit that fits every depth in 16 bits.
-    let depth_scale = if far < 6.5 { 1e-4 } else { 1e-3 };
+    // Finest depth unit that fits every depth in 16 bits (the room's walls are farther).
+    let depth_scale = if far < 6.5 && opts.surroundings != Surroundings::Room {
+        1e-4
+    } else {
+        1e-3
+    };
 
     let views: Vec<View> = cameras
         .par_iter()
@@ -130,7 +140,7 @@ pub fn generate(opts: &GenerateOptions, out: &Path) -> Result<()> {
             })
         })
         .collect();
-    let transforms = json!({
+    let mut transforms = json!({
         "camera_model": "PINHOLE",
         "fl_x": num(k.fx),
         "fl_y": num(k.fy),
@@ -139,13 +149,27 @@ pub fn generate(opts: &GenerateOptions, out: &Path) -> Result<()> {
         "w": k.width,
         "h": k.height,
         "depth_unit_scale_factor": depth_scale,
-        "aabb": [AABB.min.to_array().map(num), AABB.max.to_array().map(num)],
-        "near": num(near),
-        "far": num(far),
-        "background": BACKGROUND.to_array().map(num),
-        "generator": { "rig": opts.rig, "seed": opts.seed, "views": opts.views, "size": opts.size },
+        "generator": {
+            "rig": opts.rig,
+            "seed": opts.seed,
+            "views": opts.views,
+            "size": opts.size,
+            "surroundings": opts.surroundings,
+        },
         "frames": frames,
     });
+    let keys = transforms.as_object_mut().expect("a JSON object");
+    if opts.surroundings != Surroundings::Room {
+        keys.insert(
+            "aabb".into(),
+            json!([AABB.min.to_array().map(num), AABB.max.to_array().map(num)]),
+        );
+        keys.insert("near".into(), num(near));
+        keys.insert("far".into(), num(far));
+    }
+    if opts.surroundings == Surroundings::Plain {
+        keys.insert("background".into(), json!(BACKGROUND.to_array().map(num)));
+    }
     let path = out.join(super::nerfstudio::TRANSFORMS);
     let text = serde_json::to_string_pretty(&transforms).expect("JSON values serialise");
     std::fs::write(&path, text + "\n").map_err(|e| EngineError::io(&path, e))?;

@@ -1,8 +1,10 @@
 //! The generated world: a checkered floor square with textured objects standing on it, laid
 //! out from a seed, lit by a directional light plus ambient with hard shadows, and rendered
-//! with supersampling (colour) and the centre ray (ground-truth depth).
+//! with supersampling (colour) and the centre ray (ground-truth depth). Around it: a solid
+//! colour, a sky at infinity, or a textured room (what real captures look like).
 
 use glam::{Mat3, Vec3};
+use serde::{Deserialize, Serialize};
 
 use super::shapes::{Hit, Shape, EPS};
 use super::textures::Texture;
@@ -19,6 +21,25 @@ const AMBIENT: f32 = 0.3;
 /// The solid colour behind the scene.
 pub(crate) const BACKGROUND: Vec3 = Vec3::new(0.80, 0.86, 0.93);
 
+/// The room around the table (walls at ±x, ±z; floor and ceiling at the y bounds).
+const ROOM_MIN: Vec3 = Vec3::new(-4.0, -1.4, -4.0);
+const ROOM_MAX: Vec3 = Vec3::new(4.0, 3.0, 4.0);
+
+/// What surrounds the table-top.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Surroundings {
+    /// A solid colour, stated in the dataset: an object scene with a known background.
+    #[default]
+    Plain,
+    /// A sky at infinity whose colour varies with the view direction (horizon to zenith, a
+    /// glow around the sun, darker ground below the horizon); not stated in the dataset.
+    Sky,
+    /// A room around the table, past the content box: striped walls, a tiled floor and a
+    /// ceiling, lit like the objects; a capture with no box and no background.
+    Room,
+}
+
 /// The objects of one footprint, given the footprint's centre on the floor.
 type Stand = Box<dyn Fn(Vec3) -> Vec<Object>>;
 
@@ -31,6 +52,9 @@ pub(crate) struct World {
     objects: Vec<Object>,
     /// Unit direction towards the light.
     light: Vec3,
+    surroundings: Surroundings,
+    /// The room's walls (+x, −x, +z, −z), floor and ceiling.
+    room: [Texture; 6],
 }
 
 /// A rendered view: interleaved RGB in [0, 1] and z-depth (0 = background), row-major.
@@ -50,7 +74,7 @@ fn hsv(h: f32, s: f32, v: f32) -> Vec3 {
 
 impl World {
     /// The world for `seed`: 7 objects with varied shapes, colours and patterns.
-    pub fn new(seed: u64) -> Self {
+    pub fn new(seed: u64, surroundings: Surroundings) -> Self {
         let mut rng = Rng::new(seed);
         let mut r = |lo: f32, hi: f32| lo + (hi - lo) * rng.uniform();
         let base_hue = r(0.0, 1.0);
@@ -250,7 +274,111 @@ impl World {
             elevation.sin(),
             elevation.cos() * azimuth.sin(),
         );
-        Self { objects, light }
+        let wall_hue = r(0.0, 1.0);
+        let wall = |hue: f32, axis: Vec3| Texture::Stripes {
+            a: hsv(hue, 0.35, 0.85),
+            b: hsv(hue + 0.05, 0.55, 0.55),
+            axis,
+            period: 0.45,
+        };
+        let room = [
+            wall(wall_hue, Vec3::Z),
+            wall(wall_hue + 0.5, Vec3::Z),
+            wall(wall_hue + 0.25, Vec3::X),
+            wall(wall_hue + 0.75, Vec3::X),
+            Texture::Checker {
+                a: hsv(wall_hue + 0.1, 0.4, 0.6),
+                b: hsv(wall_hue + 0.1, 0.5, 0.35),
+                cell: 0.6,
+            },
+            Texture::Checker {
+                a: Vec3::splat(0.92),
+                b: Vec3::splat(0.8),
+                cell: 1.0,
+            },
+        ];
+        Self {
+            objects,
+            light,
+            surroundings,
+            room,
+        }
+    }
+
+    /// Where a ray from inside the room leaves it: distance, normal (pointing in) and which
+    /// of [`World::room`]'s surfaces.
+    fn room_exit(o: Vec3, d: Vec3) -> (f32, Vec3, usize) {
+        let mut best = (f32::INFINITY, Vec3::ZERO, 0);
+        for axis in 0..3 {
+            let (t, sign) = if d[axis] > 0.0 {
+                ((ROOM_MAX[axis] - o[axis]) / d[axis], 1.0)
+            } else if d[axis] < 0.0 {
+                ((ROOM_MIN[axis] - o[axis]) / d[axis], -1.0)
+            } else {
+                continue;
+            };
+            if t < best.0 {
+                let mut normal = Vec3::ZERO;
+                normal[axis] = -sign;
+                // Surfaces: 0 +x, 1 −x, 2 +z, 3 −z, 4 floor, 5 ceiling.
+                let surface = match (axis, sign > 0.0) {
+                    (0, true) => 0,
+                    (0, false) => 1,
+                    (2, true) => 2,
+                    (2, false) => 3,
+                    (_, false) => 4,
+                    (_, true) => 5,
+                };
+                best = (t, normal, surface);
+            }
+        }
+        best
+    }
+
+    /// The sky's colour in direction `d` (unit).
+    fn sky(&self, d: Vec3) -> Vec3 {
+        let horizon = Vec3::new(0.85, 0.80, 0.70);
+        let zenith = Vec3::new(0.25, 0.45, 0.85);
+        let ground = Vec3::new(0.35, 0.32, 0.28);
+        let up = d.y.clamp(-1.0, 1.0);
+        let base = if up >= 0.0 {
+            horizon.lerp(zenith, up.sqrt())
+        } else {
+            horizon.lerp(ground, (-up).sqrt().min(1.0))
+        };
+        let glow = d.dot(self.light).max(0.0).powi(6) * 0.35;
+        let bands = 0.06 * (3.0 * d.z.atan2(d.x)).cos() * (1.0 - up.abs());
+        (base + Vec3::new(glow, glow * 0.9, glow * 0.6) + Vec3::splat(bands))
+            .clamp(Vec3::ZERO, Vec3::ONE)
+    }
+
+    /// What a ray that misses every object sees: colour and distance (`None` at infinity).
+    fn surroundings(&self, o: Vec3, d: Vec3) -> (Vec3, Option<f32>) {
+        match self.surroundings {
+            Surroundings::Plain => (BACKGROUND, None),
+            Surroundings::Sky => (self.sky(d), None),
+            Surroundings::Room => {
+                let (t, normal, surface) = Self::room_exit(o, d);
+                let p = o + t * d;
+                (
+                    self.shade(p, normal, self.room[surface].albedo(p, normal)),
+                    Some(t),
+                )
+            }
+        }
+    }
+
+    /// Ambient plus direct light with hard shadows at `p`.
+    fn shade(&self, p: Vec3, normal: Vec3, albedo: Vec3) -> Vec3 {
+        let facing = normal.dot(self.light).max(0.0);
+        let direct = if facing > 0.0 && self.lit(p + normal * (4.0 * EPS)) {
+            facing
+        } else {
+            0.0
+        };
+        // A slightly brighter ambient on upward faces keeps shadowed shapes readable.
+        let ambient = AMBIENT * (0.8 + 0.2 * normal.y);
+        albedo * (ambient + (1.0 - AMBIENT) * direct)
     }
 
     fn hit(&self, o: Vec3, d: Vec3) -> Option<(Hit, &Object)> {
@@ -270,20 +398,16 @@ impl World {
             .all(|obj| obj.shape.intersect(p, self.light, f32::INFINITY).is_none())
     }
 
-    /// Colour and distance along a unit ray, or `None` for the background.
-    fn trace(&self, o: Vec3, d: Vec3) -> Option<(Vec3, f32)> {
-        let (hit, obj) = self.hit(o, d)?;
-        let p = o + hit.t * d;
-        let albedo = obj.texture.albedo(hit.local, hit.local_normal);
-        let facing = hit.normal.dot(self.light).max(0.0);
-        let direct = if facing > 0.0 && self.lit(p + hit.normal * (4.0 * EPS)) {
-            facing
-        } else {
-            0.0
-        };
-        // A slightly brighter ambient on upward faces keeps shadowed shapes readable.
-        let ambient = AMBIENT * (0.8 + 0.2 * hit.normal.y);
-        Some((albedo * (ambient + (1.0 - AMBIENT) * direct), hit.t))
+    /// Colour and distance along a unit ray (`None`: nothing at a finite distance).
+    fn trace(&self, o: Vec3, d: Vec3) -> (Vec3, Option<f32>) {
+        match self.hit(o, d) {
+            Some((hit, obj)) => {
+                let p = o + hit.t * d;
+                let albedo = obj.texture.albedo(hit.local, hit.local_normal);
+                (self.shade(p, hit.normal, albedo), Some(hit.t))
+            }
+            None => self.surroundings(o, d),
+        }
     }
 
     /// Renders `camera` with `ss`×`ss` samples per pixel (`ss` odd, so the centre sample
@@ -304,11 +428,11 @@ impl World {
                         let u = x as f32 + (sx as f32 + 0.5) / ss as f32;
                         let v = y as f32 + (sy as f32 + 0.5) / ss as f32;
                         let ray = camera.ray(u, v);
-                        let sample = self.trace(ray.origin, ray.dir);
+                        let (colour, t) = self.trace(ray.origin, ray.dir);
                         if sx == ss / 2 && sy == ss / 2 {
-                            depth = sample.map_or(0.0, |(_, t)| t * ray.z_per_t);
+                            depth = t.map_or(0.0, |t| t * ray.z_per_t);
                         }
-                        sum += sample.map_or(BACKGROUND, |(c, _)| c);
+                        sum += colour;
                     }
                 }
                 let c = (sum / (ss * ss) as f32).clamp(Vec3::ZERO, Vec3::ONE);
