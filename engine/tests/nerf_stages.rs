@@ -260,16 +260,18 @@ fn a_sky_at_infinity_is_learned_as_background_not_fog() {
         "{:?}",
         report.empty_opacity
     );
-    // And the objects' depth is right.
-    let hits: Vec<f32> = pixels
+    // And the objects' depth is right (the median: a tiny field's outlines are soft, and
+    // silhouette pixels mix a near object with the far floor).
+    let mut rel: Vec<f32> = pixels
         .iter()
         .filter(|p| p.0 > 0.0 && p.2 > 0.5)
-        .map(|p| (p.1 - p.0).abs())
+        .map(|p| ((p.1 - p.0) / p.0).abs())
         .collect();
-    let mae = hits.iter().sum::<f32>() / hits.len() as f32;
+    rel.sort_by(f32::total_cmp);
+    let median = rel[rel.len() / 2];
     assert!(
-        hits.len() > 300 && mae < 0.05 * 2.0,
-        "depth MAE {mae} over {}",
-        hits.len()
+        rel.len() > 300 && median < 0.05,
+        "median relative depth error {median} over {}",
+        rel.len()
     );
 }
