@@ -59,8 +59,26 @@ pub fn step_size(field: &RadianceField, rays: &RayBatch, cfg: &SamplingConfig) -
     span / cfg.steps_per_diagonal as f32
 }
 
-/// Renders `rays` through `field` with colours from `colour` over the field's background. With `rng`, sample positions are
-/// jittered (training).
+/// Marches `rays` through `field`'s occupied cells (in its space: box, NDC or contracted) with
+/// the step of `cfg`; with `rng`, sample positions are jittered (training).
+pub fn march_field(
+    field: &RadianceField,
+    rays: &RayBatch,
+    cfg: &SamplingConfig,
+    rng: Option<&mut Rng>,
+) -> Samples {
+    march(
+        rays,
+        &field.occupancy,
+        field.space.contraction.as_ref(),
+        step_size(field, rays, cfg),
+        cfg.max_samples_per_ray,
+        rng,
+    )
+}
+
+/// Renders `rays` through `field` with colours from `colour` over the field's background.
+/// With `rng`, sample positions are jittered (training).
 pub fn render_rays(
     field: &RadianceField,
     rays: &RayBatch,
@@ -68,15 +86,7 @@ pub fn render_rays(
     colour: &ColourFn,
     rng: Option<&mut Rng>,
 ) -> Result<RenderOutput> {
-    let step = step_size(field, rays, cfg);
-    let marched = march(
-        rays,
-        &field.occupancy,
-        field.space.contraction.as_ref(),
-        step,
-        cfg.max_samples_per_ray,
-        rng,
-    );
+    let marched = march_field(field, rays, cfg, rng);
     // A cheap gradient-free density pass finds where each ray becomes opaque.
     let sigma = field.density_values(&marched.positions)?;
     let samples = marched.filter(&early_stop_mask(&marched, &sigma, cfg.early_stop_eps));
@@ -96,15 +106,7 @@ fn render_rays_inference(
     cfg: &SamplingConfig,
     colour: &ColourFn,
 ) -> Result<RenderOutput> {
-    let step = step_size(field, rays, cfg);
-    let marched = march(
-        rays,
-        &field.occupancy,
-        field.space.contraction.as_ref(),
-        step,
-        cfg.max_samples_per_ray,
-        None,
-    );
+    let marched = march_field(field, rays, cfg, None);
     let values = field.geometry_values(&marched.positions)?;
     let keep = early_stop_mask(&marched, &values.sigma, cfg.early_stop_eps);
     let samples = marched.filter(&keep);

@@ -13,8 +13,7 @@ use candle_core::{Device, Tensor};
 use crate::camera::Camera;
 use crate::field::radiance::RadianceField;
 use crate::field::saved::FieldMeta;
-use crate::render::march::march;
-use crate::render::step_size;
+use crate::render::march_field;
 use crate::Result;
 
 /// Samples with a compositing weight below this are dropped (their colour is invisible).
@@ -94,7 +93,6 @@ impl SurfaceSamples {
     /// The surface samples of every pixel of `camera`, row-major.
     pub fn for_camera(field: &RadianceField, meta: &FieldMeta, camera: &Camera) -> Result<Self> {
         let rays = meta.camera_rays(camera);
-        let step = step_size(field, &rays, &meta.sampling);
         let g = field.config.geometry_features;
         let mut out = SurfaceSamples {
             offsets: vec![0],
@@ -104,14 +102,7 @@ impl SurfaceSamples {
         let idx: Vec<usize> = (0..rays.len()).collect();
         for part in idx.chunks(CHUNK) {
             let batch = rays.select(part);
-            let marched = march(
-                &batch,
-                &field.occupancy,
-                field.space.contraction.as_ref(),
-                step,
-                meta.sampling.max_samples_per_ray,
-                None,
-            );
+            let marched = march_field(field, &batch, &meta.sampling, None);
             // One pass of the density network over the marched samples gives σ for the
             // weights and the geometry features of the samples that keep one.
             let values = field.geometry_values(&marched.positions)?;
