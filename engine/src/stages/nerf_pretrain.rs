@@ -67,6 +67,14 @@ pub struct NerfConfig {
 }
 
 impl NerfConfig {
+    /// How to load the scene for this configuration (its working resolution).
+    pub fn load_options(&self) -> LoadOptions {
+        LoadOptions {
+            max_side: self.max_side,
+            ..LoadOptions::default()
+        }
+    }
+
     pub fn preset(preset: Preset) -> Self {
         let grid = |levels, log2_table_size, base_resolution, max_resolution| HashGridConfig {
             levels,
@@ -142,16 +150,6 @@ impl NerfConfig {
                 16384,
                 1 << 18,
             ),
-        }
-    }
-}
-
-impl NerfConfig {
-    /// How to load the scene for this configuration (its working resolution).
-    pub fn load_options(&self) -> LoadOptions {
-        LoadOptions {
-            max_side: self.max_side,
-            ..LoadOptions::default()
         }
     }
 }
