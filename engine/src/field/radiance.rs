@@ -273,17 +273,18 @@ impl RadianceField {
     /// What rays that leave the content see: `[1, 3]` for a known colour, `[R, 3]` per view
     /// direction for a learned background.
     pub fn background(&self, view_dirs: &[glam::Vec3]) -> Result<Tensor> {
-        match (&self.background_net, self.space.background) {
-            (Some(net), _) => {
+        match &self.background_net {
+            Some(net) => {
                 let sh: Vec<f32> = view_dirs.iter().flat_map(|d| sh16(d.to_array())).collect();
                 let x = Tensor::from_vec(sh, (view_dirs.len(), 16), self.device())?;
                 Ok(candle_nn::ops::sigmoid(&net.forward(&x)?)?)
             }
-            (None, Background::Colour(c)) => Ok(Tensor::from_slice(&c, (1, 3), self.device())?),
-            (None, Background::Learned) => Err(EngineError::config(
-                "background",
-                "a learned background needs its network",
-            )),
+            // Only a known colour has no network (see `new`).
+            None => Ok(Tensor::from_slice(
+                &self.space.background.alpha_colour(),
+                (1, 3),
+                self.device(),
+            )?),
         }
     }
 
