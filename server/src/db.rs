@@ -2,9 +2,15 @@
 //! as one single-connection pool for writes (SQLite allows one writer; serialising writes in
 //! the process avoids busy retries; the group-commit `writer` and the rare other writes share
 //! it) and a small pool of read-only connections, so reads never wait for the writer.
+//!
+//! A write connection is only reused when it is outside any transaction. SQLite rolls a
+//! transaction back by itself on some errors (a full disk, an I/O error), and sqlx then fails
+//! to roll it back again and keeps counting it as open; its next transaction would become a
+//! savepoint whose commit never reaches the disk. Such a connection is closed on release and a
+//! fresh one opened instead (see [`clean_after_release`]).
 
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::SqlitePool;
+use sqlx::{Connection, SqliteConnection, SqlitePool};
 use std::path::Path;
 use std::time::Duration;
 
@@ -36,6 +42,7 @@ impl Db {
         // (one more round trip to the connection's thread) before every use.
         let write = SqlitePoolOptions::new()
             .test_before_acquire(false)
+            .after_release(|conn, _| Box::pin(clean_after_release(conn)))
             .max_connections(1)
             .min_connections(1)
             .connect_with(options.clone())
@@ -54,4 +61,15 @@ impl Db {
         self.read.close().await;
         self.write.close().await;
     }
+}
+
+/// Whether a released write connection may be reused: true only when no transaction is left
+/// open (after the rollback a dropped transaction queued has run).
+async fn clean_after_release(conn: &mut SqliteConnection) -> Result<bool, sqlx::Error> {
+    conn.ping().await?;
+    let clean = !conn.is_in_transaction();
+    if !clean {
+        tracing::warn!("closing a write connection left inside a failed transaction");
+    }
+    Ok(clean)
 }

@@ -199,3 +199,74 @@ fn status(error: OpError) -> Status {
         OpError::Abort(status) => status,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::db::Db;
+
+    async fn insert(writer: &Writer, value: &'static str) -> Result<(), Status> {
+        writer
+            .write(move |conn, _| {
+                Box::pin(async move {
+                    sqlx::query("INSERT INTO probe (value) VALUES (?)")
+                        .bind(value)
+                        .execute(&mut *conn)
+                        .await?;
+                    Ok(())
+                })
+            })
+            .await
+    }
+
+    async fn abort(writer: &Writer) -> Result<(), Status> {
+        writer
+            .write(|conn, _| {
+                Box::pin(async move {
+                    sqlx::query("INSERT INTO probe (value) VALUES ('aborted')")
+                        .execute(&mut *conn)
+                        .await?;
+                    Err::<(), _>(OpError::Abort(Status::aborted("asked to roll back")))
+                })
+            })
+            .await
+    }
+
+    /// SQLite rolls a whole transaction back by itself on a full disk or an I/O error; a
+    /// `RAISE(ROLLBACK)` trigger does the same on demand. Every write acknowledged after such a
+    /// failure (and after a later rollback that sqlx turns into a savepoint rollback when it
+    /// has lost count) must be on disk for a new connection.
+    #[tokio::test]
+    async fn writes_after_an_automatic_rollback_are_durable() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("coordinator.db");
+        let db = Db::open(&path).await.unwrap();
+        sqlx::raw_sql(
+            "CREATE TABLE probe (value TEXT NOT NULL); \
+             CREATE TRIGGER full_disk BEFORE INSERT ON probe WHEN NEW.value = 'full' \
+             BEGIN SELECT RAISE(ROLLBACK, 'database or disk is full'); END;",
+        )
+        .execute(&db.write)
+        .await
+        .unwrap();
+        let (events, _) = broadcast::channel(16);
+        let writer = Writer::spawn(db.write.clone(), events);
+
+        insert(&writer, "before").await.unwrap();
+        let error = insert(&writer, "full").await.unwrap_err();
+        assert!(error.message().contains("disk is full"), "{error:?}");
+        assert_eq!(
+            abort(&writer).await.unwrap_err().code(),
+            tonic::Code::Aborted
+        );
+        insert(&writer, "after 1").await.unwrap();
+        insert(&writer, "after 2").await.unwrap();
+
+        let fresh = Db::open(&path).await.unwrap();
+        let stored: Vec<String> = sqlx::query_scalar("SELECT value FROM probe ORDER BY rowid")
+            .fetch_all(&fresh.read)
+            .await
+            .unwrap();
+        assert_eq!(stored, ["before", "after 1", "after 2"]);
+    }
+}
