@@ -4,14 +4,17 @@
 //!
 //! Layout of a checkpoint folder: `step-00001234.safetensors` and `step-00001234.json`. The
 //! tensors are written first (temporary name, then rename) and the JSON last: a checkpoint
-//! exists once its JSON exists.
+//! exists once its JSON exists. The JSON holds the SHA-256 of the tensors file, so a truncated
+//! or altered copy (a bad disk, an interrupted transfer) is recognised; loading also refuses
+//! tensors with NaN or infinite values. [`CheckpointDir::latest`] passes over such a checkpoint
+//! to the newest good one.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
 use serde::de::DeserializeOwned;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::{EngineError, Result};
 
@@ -59,9 +62,13 @@ impl CheckpointDir {
         let tmp = self.dir.join(format!(".{stem}.safetensors.tmp"));
         let map: HashMap<String, Tensor> = tensors.iter().cloned().collect();
         candle_core::safetensors::save(&map, &tmp)?;
+        let tensors_sha256 = sha256_file(&tmp)?;
         std::fs::rename(&tmp, &weights).map_err(|e| EngineError::io(&weights, e))?;
-        let json = serde_json::to_vec_pretty(meta)
-            .map_err(|e| EngineError::artifact(&weights, e.to_string()))?;
+        let json = serde_json::to_vec_pretty(&Stored::Checked {
+            tensors_sha256,
+            meta,
+        })
+        .map_err(|e| EngineError::artifact(&weights, e.to_string()))?;
         write_atomic(&self.dir.join(format!("{stem}.json")), &json)?;
         self.prune()
     }
@@ -92,26 +99,62 @@ impl CheckpointDir {
         Ok(steps)
     }
 
-    /// The newest complete checkpoint, if any.
+    /// The newest complete checkpoint that loads, if any. Checkpoints that do not (corrupt,
+    /// truncated, non-finite values) are passed over with a warning: training resumes from
+    /// the newest good one, or starts afresh.
     pub fn latest<M: DeserializeOwned>(&self, device: &Device) -> Result<Option<Checkpoint<M>>> {
-        match self.steps()?.last() {
-            Some(&step) => self.load(step, device).map(Some),
-            None => Ok(None),
+        for &step in self.steps()?.iter().rev() {
+            match self.load(step, device) {
+                Ok(checkpoint) => return Ok(Some(checkpoint)),
+                Err(error @ EngineError::Artifact { .. }) => {
+                    tracing::warn!(step, %error, "passing over a bad checkpoint");
+                }
+                Err(error) => return Err(error),
+            }
         }
+        Ok(None)
     }
 
-    /// Loads the checkpoint of `step`.
+    /// Loads the checkpoint of `step`, checking its tensors against the checksum in its
+    /// metadata and that every value is finite.
     pub fn load<M: DeserializeOwned>(&self, step: u64, device: &Device) -> Result<Checkpoint<M>> {
         let stem = Self::stem(step);
         let json_path = self.dir.join(format!("{stem}.json"));
         let bytes = std::fs::read(&json_path).map_err(|e| EngineError::io(&json_path, e))?;
-        let meta = serde_json::from_slice(&bytes).map_err(|e| {
+        let stored: Stored<M> = serde_json::from_slice(&bytes).map_err(|e| {
             EngineError::artifact(&json_path, format!("unreadable checkpoint metadata: {e}"))
         })?;
         let weights = self.dir.join(format!("{stem}.safetensors"));
+        let meta = match stored {
+            Stored::Checked {
+                tensors_sha256,
+                meta,
+            } => {
+                let actual = sha256_file(&weights)?;
+                if actual != tensors_sha256 {
+                    return Err(EngineError::artifact(
+                        &weights,
+                        format!(
+                            "checkpoint tensors do not match their checksum (SHA-256 {actual}, \
+                             expected {tensors_sha256}): truncated or corrupt"
+                        ),
+                    ));
+                }
+                meta
+            }
+            Stored::Unchecked(meta) => meta,
+        };
         let tensors = candle_core::safetensors::load(&weights, device).map_err(|e| {
             EngineError::artifact(&weights, format!("unreadable checkpoint tensors: {e}"))
         })?;
+        for (name, tensor) in &tensors {
+            if !all_finite(tensor)? {
+                return Err(EngineError::artifact(
+                    &weights,
+                    format!("checkpoint tensor {name:?} holds NaN or infinite values"),
+                ));
+            }
+        }
         Ok(Checkpoint {
             step,
             meta,
@@ -131,6 +174,34 @@ impl CheckpointDir {
         }
         Ok(())
     }
+}
+
+/// A checkpoint's JSON: the metadata with the tensors' checksum, or (written before
+/// checksums) the metadata alone.
+#[derive(Serialize, Deserialize)]
+#[serde(untagged)]
+enum Stored<M> {
+    Checked { tensors_sha256: String, meta: M },
+    Unchecked(M),
+}
+
+fn sha256_file(path: &Path) -> Result<String> {
+    let bytes = std::fs::read(path).map_err(|e| EngineError::io(path, e))?;
+    Ok(crate::style2d::weights::sha256_hex(&bytes))
+}
+
+/// Whether every value of a floating-point tensor is finite (`0·x` is 0 for finite `x` and NaN
+/// otherwise), on any device; integer tensors always are.
+fn all_finite(tensor: &Tensor) -> Result<bool> {
+    if !tensor.dtype().is_float() {
+        return Ok(true);
+    }
+    let residue = tensor
+        .affine(0.0, 0.0)?
+        .to_dtype(candle_core::DType::F32)?
+        .sum_all()?
+        .to_scalar::<f32>()?;
+    Ok(residue == 0.0)
 }
 
 /// Writes `bytes` to `path` through a temporary file and a rename.
@@ -185,24 +256,55 @@ mod tests {
         );
     }
 
+    fn save_steps(ck: &CheckpointDir, steps: &[u64]) {
+        for &step in steps {
+            let t = Tensor::full(step as f32, (4, 4), &Device::Cpu).unwrap();
+            ck.save(step, &[("w".into(), t)], &(step as u32)).unwrap();
+        }
+    }
+
     #[test]
-    fn corrupt_metadata_names_the_file() {
+    fn bad_checkpoints_are_passed_over_naming_the_file() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ck = CheckpointDir::new(tmp.path(), 10);
+        save_steps(&ck, &[1, 2, 3, 4]);
+        // Unreadable metadata, truncated tensors, NaN tensors (with a matching checksum, as a
+        // diverged run would write them).
+        std::fs::write(tmp.path().join("step-00000004.json"), b"{oops").unwrap();
+        let weights = tmp.path().join("step-00000003.safetensors");
+        let bytes = std::fs::read(&weights).unwrap();
+        std::fs::write(&weights, &bytes[..bytes.len() / 2]).unwrap();
+        let nan = Tensor::full(f32::NAN, (4, 4), &Device::Cpu).unwrap();
+        ck.save(2, &[("w".into(), nan)], &2u32).unwrap();
+
+        for (step, expect) in [
+            (4, "metadata"),
+            (3, "do not match their checksum"),
+            (2, "NaN or infinite"),
+        ] {
+            let err = ck
+                .load::<u32>(step, &Device::Cpu)
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(
+                err.contains(&format!("step-{step:08}")) && err.contains(expect),
+                "{err}"
+            );
+        }
+        let latest = ck.latest::<u32>(&Device::Cpu).unwrap().unwrap();
+        assert_eq!((latest.step, latest.meta), (1, 1));
+        std::fs::remove_file(tmp.path().join("step-00000001.safetensors")).unwrap();
+        assert!(ck.latest::<u32>(&Device::Cpu).unwrap().is_none());
+    }
+
+    #[test]
+    fn checkpoints_without_a_checksum_still_load() {
         let tmp = tempfile::tempdir().unwrap();
         let ck = CheckpointDir::new(tmp.path(), 1);
-        ck.save(
-            1,
-            &[(
-                "w".into(),
-                Tensor::zeros(1, candle_core::DType::F32, &Device::Cpu).unwrap(),
-            )],
-            &1u32,
-        )
-        .unwrap();
-        std::fs::write(tmp.path().join("step-00000001.json"), b"{oops").unwrap();
-        let err = ck.latest::<u32>(&Device::Cpu).err().unwrap().to_string();
-        assert!(
-            err.contains("step-00000001.json") && err.contains("metadata"),
-            "{err}"
-        );
+        save_steps(&ck, &[7]);
+        std::fs::write(tmp.path().join("step-00000007.json"), b"7").unwrap();
+        let loaded = ck.load::<u32>(7, &Device::Cpu).unwrap();
+        assert_eq!(loaded.meta, 7);
     }
 }

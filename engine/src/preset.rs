@@ -83,8 +83,36 @@ pub fn apply_overrides<T: Serialize + DeserializeOwned>(
     serde_json::from_value(json).map_err(|e| EngineError::config("config", e.to_string()))
 }
 
-/// Applies the overrides addressed to `stage` (`<stage>.<key>=…`) to its configuration;
-/// overrides of other stages are left out. A key naming no stage is an error.
+/// A job's overrides object (`{"nerf_pretrain.steps": 2000, "nerf_pretrain": {"field":
+/// {"grid.levels": 12}}}`: flat, nested or both) as dotted keys and their values.
+pub fn flatten_overrides(
+    map: &serde_json::Map<String, serde_json::Value>,
+) -> Vec<(String, serde_json::Value)> {
+    fn walk(
+        prefix: &str,
+        map: &serde_json::Map<String, serde_json::Value>,
+        out: &mut Vec<(String, serde_json::Value)>,
+    ) {
+        for (k, v) in map {
+            let key = if prefix.is_empty() {
+                k.clone()
+            } else {
+                format!("{prefix}.{k}")
+            };
+            match v {
+                serde_json::Value::Object(inner) => walk(&key, inner, out),
+                leaf => out.push((key, leaf.clone())),
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk("", map, &mut out);
+    out
+}
+
+/// Applies the overrides addressed to `stage` (`<stage>.<key>=…`) to its configuration and
+/// checks the result against the stage's bounds ([`crate::stages::limits`]); overrides of
+/// other stages are left out. A key naming no stage is an error.
 pub fn stage_overrides<T: Serialize + DeserializeOwned>(
     config: &T,
     stage: &str,
@@ -106,13 +134,15 @@ pub fn stage_overrides<T: Serialize + DeserializeOwned>(
             mine.push((rest.to_string(), value.clone()));
         }
     }
-    apply_overrides(config, &mine).map_err(|e| match e {
+    let config = apply_overrides(config, &mine).map_err(|e| match e {
         EngineError::Config { field, reason } => EngineError::Config {
             field: format!("{stage}.{field}"),
             reason,
         },
         e => e,
-    })
+    })?;
+    crate::stages::limits::check(stage, &config)?;
+    Ok(config)
 }
 
 #[cfg(test)]

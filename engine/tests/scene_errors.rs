@@ -84,6 +84,17 @@ fn image_size_disagrees_with_intrinsics() {
 }
 
 #[test]
+fn image_size_out_of_range_states_the_limit() {
+    let d = fixture(CameraRig::Orbit);
+    edit(d.path(), |t| t["w"] = json!(100000));
+    let msg = load(d.path());
+    assert_mentions(
+        &msg,
+        &["transforms.json", "`w`", "from 1 to 16384", "100000"],
+    );
+}
+
+#[test]
 fn per_frame_size_override_is_named() {
     let d = fixture(CameraRig::Orbit);
     edit(d.path(), |t| t["frames"][4]["h"] = json!(20));

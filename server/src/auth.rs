@@ -61,12 +61,15 @@ impl std::fmt::Debug for TokenEntry {
 }
 
 impl TokenEntry {
-    /// Parses `role:name:token` entries separated by newlines or commas; blank lines and `#`
-    /// comments are skipped.
+    /// Parses `role:name:token` entries separated by newlines or commas; blank lines and lines
+    /// starting with `#` are skipped (a `#` elsewhere belongs to the token). A token listed
+    /// twice is an error: it would silently get one of the two roles.
     pub fn parse_list(text: &str) -> anyhow::Result<Vec<TokenEntry>> {
-        let mut out = Vec::new();
+        let mut out: Vec<TokenEntry> = Vec::new();
         for (n, line) in text.lines().enumerate() {
-            let line = line.split('#').next().unwrap_or("");
+            if line.trim_start().starts_with('#') {
+                continue;
+            }
             for entry in line.split(',').map(str::trim).filter(|e| !e.is_empty()) {
                 let mut parts = entry.splitn(3, ':');
                 let (role, name, token) = match (parts.next(), parts.next(), parts.next()) {
@@ -85,6 +88,14 @@ impl TokenEntry {
                     "line {}: token of {name:?} is shorter than 16 characters",
                     n + 1
                 );
+                if let Some(first) = out.iter().find(|e| e.token == token) {
+                    anyhow::bail!(
+                        "line {}: the token of {name:?} is already listed for {:?}; every \
+                         principal needs its own token",
+                        n + 1,
+                        first.name
+                    );
+                }
                 out.push(TokenEntry {
                     role,
                     name: name.to_string(),
@@ -208,6 +219,12 @@ mod tests {
         assert_eq!(list[1].role, Role::Worker);
         assert_eq!(list[2].name, "root");
         assert!(TokenEntry::parse_list("boss:x:aaaaaaaaaaaaaaaa").is_err());
+        let hashed = TokenEntry::parse_list("client:x:abc#defghijklmnopq").unwrap();
+        assert_eq!(hashed[0].token, "abc#defghijklmnopq");
+        let twice = TokenEntry::parse_list("client:x:aaaaaaaaaaaaaaaa\nadmin:y:aaaaaaaaaaaaaaaa")
+            .unwrap_err()
+            .to_string();
+        assert!(twice.contains("already listed"), "{twice}");
         assert!(TokenEntry::parse_list("client:x:short").is_err());
     }
 }

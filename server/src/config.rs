@@ -7,6 +7,7 @@ use anyhow::Context;
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 /// Everything a coordinator needs to start.
@@ -44,6 +45,27 @@ pub struct CoordinatorConfig {
     pub limits: Limits,
     /// Directory for upload spool files (default: the system temporary directory).
     pub spool_dir: Option<PathBuf>,
+    /// Checks a job's preset and overrides at submission as the workers will apply them (the
+    /// engine's settings and their bounds); `None` checks only that they form a JSON object.
+    /// The `stylenerf` binary installs the engine's check; this crate does not link the engine.
+    pub settings_check: Option<SettingsCheck>,
+}
+
+/// A check of a job's `(preset, overrides)`: every problem as `(field, reason)`.
+#[derive(Clone)]
+pub struct SettingsCheck(
+    #[allow(clippy::type_complexity)]
+    pub  Arc<
+        dyn Fn(&str, &serde_json::Map<String, serde_json::Value>) -> Vec<(String, String)>
+            + Send
+            + Sync,
+    >,
+);
+
+impl std::fmt::Debug for SettingsCheck {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SettingsCheck")
+    }
 }
 
 /// TLS certificate chain and private key, PEM files.
@@ -117,6 +139,7 @@ impl CoordinatorConfig {
             presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
             limits: Limits::default(),
             spool_dir: None,
+            settings_check: None,
         }
     }
 }

@@ -19,7 +19,7 @@ use std::time::Duration;
 use stylenerf_proto::v1::artifact_service_server::ArtifactServiceServer;
 use stylenerf_proto::v1::job_service_server::JobServiceServer;
 use stylenerf_proto::v1::worker_service_server::WorkerServiceServer;
-use tokio::sync::{broadcast, watch, Notify};
+use tokio::sync::{broadcast, watch, Notify, Semaphore};
 use tokio::task::JoinHandle;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::server::TcpIncoming;
@@ -46,6 +46,15 @@ impl Coordinator {
     /// Starts a coordinator: applies migrations, binds the listeners and spawns the services
     /// on the current Tokio runtime.
     pub async fn start(config: CoordinatorConfig) -> anyhow::Result<CoordinatorHandle> {
+        if let Some(dir) = &config.spool_dir {
+            // Found out now rather than at the first upload.
+            tempfile::NamedTempFile::new_in(dir).map_err(|e| {
+                anyhow::anyhow!(
+                    "spool directory {}: {e} (it must be a writable folder)",
+                    dir.display()
+                )
+            })?;
+        }
         let db = Db::open(&config.database).await?;
         let storage = Storage::open(&config.storage_url)?;
         let (stop, stop_rx) = watch::channel(false);
@@ -60,6 +69,7 @@ impl Coordinator {
             ready: Notify::new(),
             shutdown: stop_rx.clone(),
             next_expiry_check: AtomicI64::new(0),
+            validations: Semaphore::new(crate::inputs::CONCURRENT_VALIDATIONS),
         });
 
         let auth = Authenticator::new(&config.auth);

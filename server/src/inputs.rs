@@ -2,7 +2,7 @@
 //! bytes arrive), validating datasets and style images off the async runtime, storing accepted
 //! uploads under `uploads/<id>/`, and validating objects that operators staged in the store.
 
-use crate::auth::Principal;
+use crate::auth::{Principal, Role};
 use crate::errors::{internal, invalid};
 use crate::model::now_ms;
 use crate::state::Shared;
@@ -37,6 +37,10 @@ impl InputKind {
     }
 }
 
+/// Most inputs validated at once: a style image is decoded whole (up to 8192² pixels of 16-bit
+/// RGBA, 512 MiB), so this bounds the coordinator's memory under concurrent uploads.
+pub const CONCURRENT_VALIDATIONS: usize = 2;
+
 /// Validates a complete input file; returns a summary and the extension to store it with.
 async fn validate_file(
     shared: &Shared,
@@ -44,6 +48,7 @@ async fn validate_file(
     path: std::path::PathBuf,
 ) -> Result<Result<(String, &'static str), String>, Status> {
     let limits = shared.config.limits.clone();
+    let _slot = shared.validations.acquire().await.map_err(internal)?;
     tokio::task::spawn_blocking(move || match kind {
         InputKind::Dataset => {
             let file = std::fs::File::open(&path).map_err(|e| e.to_string())?;
@@ -250,15 +255,20 @@ pub async fn resolve_input(
         Some(Source::ObjectKey(key)) => {
             let key_field = format!("{field}.object_key");
             crate::storage::check_key(&key_field, key)?;
+            // Someone else's key and a missing key get the same answer: a caller cannot probe
+            // which objects exist.
+            let unreadable = || invalid(&key_field, format!("no object {key:?} that you can read"));
+            if !may_read_object(shared, caller, key).await? {
+                return Err(unreadable());
+            }
             let limit = match kind {
                 InputKind::Dataset => shared.config.limits.max_dataset_bytes,
                 InputKind::Style => shared.config.limits.max_style_bytes,
             };
-            let size = shared
-                .storage
-                .size(key)
-                .await
-                .map_err(|s| invalid(&key_field, s.message().to_string()))?;
+            let size = match shared.storage.size(key).await {
+                Err(status) if status.code() == tonic::Code::NotFound => return Err(unreadable()),
+                other => other?,
+            };
             if size > limit {
                 return Err(invalid(
                     &key_field,
@@ -273,4 +283,30 @@ pub async fn resolve_input(
             Ok((key.clone(), extension.to_string()))
         }
     }
+}
+
+/// Whether `caller` may use the object `key` as a job input: admins any key; others the
+/// objects of their own uploads (`uploads/<id>/…`) and jobs (`jobs/<id>/…`) and what an
+/// operator staged for them (`staged/<name>/…`).
+async fn may_read_object(shared: &Shared, caller: &Principal, key: &str) -> Result<bool, Status> {
+    if caller.role == Role::Admin {
+        return Ok(true);
+    }
+    let mut segments = key.splitn(3, '/');
+    let (Some(area), Some(id), Some(_)) = (segments.next(), segments.next(), segments.next())
+    else {
+        return Ok(false);
+    };
+    let owner_query = match area {
+        "uploads" => "SELECT owner FROM uploads WHERE id = ?",
+        "jobs" => "SELECT owner FROM jobs WHERE id = ?",
+        "staged" => return Ok(id == caller.name),
+        _ => return Ok(false),
+    };
+    let owner: Option<String> = sqlx::query_scalar(owner_query)
+        .bind(id)
+        .fetch_optional(&shared.db.read)
+        .await
+        .map_err(internal)?;
+    Ok(owner.is_some_and(|owner| caller.can_see(&owner)))
 }

@@ -74,6 +74,8 @@ pub struct NewJob {
     pub idempotency_key: Option<String>,
     /// Extra configuration of the final render (`camera_path`, `style_blend`).
     pub render: serde_json::Map<String, serde_json::Value>,
+    /// The message of the `job_created` event (what the job waits for, when it may wait long).
+    pub note: String,
 }
 
 /// The job of `owner` with this idempotency key, if any.
@@ -153,7 +155,7 @@ pub async fn insert_job(
         &job.id,
         JOB_CREATED,
         job_state::QUEUED,
-        "job accepted",
+        &job.note,
     ));
     let no_extra = serde_json::Map::new();
     let mut previous: Option<i64> = None;
@@ -516,7 +518,8 @@ pub async fn cancel_job(
     Ok(())
 }
 
-/// Adds a `render_stylized` task to a job whose mutual learning succeeded. `extra` holds the
+/// Adds a `render_stylized` task to a job whose mutual learning succeeded (also when the job
+/// then failed in its final render). `extra` holds the
 /// render's `camera_path`/`style_blend`, `overrides` the job's overrides merged with the
 /// render's.
 pub async fn add_render(
@@ -536,10 +539,10 @@ pub async fn add_render(
         Some(job) if caller.can_see(&job.owner) => job,
         _ => return Err(job_not_found(job_id)),
     };
-    if matches!(job.state.as_str(), job_state::FAILED | job_state::CANCELLED) {
+    // A job that failed in its final render can render again: its trained models are there.
+    if job.state == job_state::CANCELLED {
         return Err(Status::failed_precondition(format!(
-            "job {job_id} is {}; only a running or succeeded job can render",
-            job.state
+            "job {job_id} is cancelled; only a running, succeeded or failed job can render"
         )));
     }
     let mutual: Option<(i64, String)> = sqlx::query_as(
@@ -608,8 +611,8 @@ pub async fn add_render(
         0,
         "render requested",
     ));
-    if job.state == job_state::SUCCEEDED {
-        set_job_state(&mut tx, &mut batch, job_id, job_state::RUNNING, None)
+    if job_state::is_terminal(&job.state) {
+        set_job_state(&mut tx, &mut batch, job_id, job_state::RUNNING, Some(""))
             .await
             .map_err(internal)?;
     }

@@ -23,7 +23,8 @@ pub mod storage;
 pub mod validation;
 mod writer;
 
+pub use api::job_api::CAMERA_PATH_KINDS;
 pub use auth::{AuthConfig, Role, TokenEntry};
-pub use config::{CoordinatorArgs, CoordinatorConfig, Limits, TlsConfig};
+pub use config::{CoordinatorArgs, CoordinatorConfig, Limits, SettingsCheck, TlsConfig};
 pub use coordinator::{Coordinator, CoordinatorHandle};
 pub use stylenerf_proto as proto;

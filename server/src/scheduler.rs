@@ -3,6 +3,7 @@
 //! failure under fencing tokens, promotion of dependent tasks, and requeueing of expired leases.
 //! Every state change happens in one write transaction, group-committed by `writer`.
 
+use crate::auth::Principal;
 use crate::errors::{internal, invalid};
 use crate::events::{EventBatch, NewEvent, JOB_STATE, TASK_PROGRESS};
 use crate::jobs::{cancel_open_tasks, set_job_state, TaskRow};
@@ -46,12 +47,15 @@ pub async fn register_worker(
         return Err(invalid("worker_id", "longer than 100 characters"));
     }
     let now = now_ms();
-    sqlx::query(
+    // A known id is refreshed only by the principal that registered it: a worker's leases are
+    // bound to its credentials.
+    let stored = sqlx::query(
         "INSERT INTO workers (id, name, owner, device, memory_bytes, labels, max_tasks, \
          registered_at, last_seen_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) \
-         ON CONFLICT (id) DO UPDATE SET name = excluded.name, owner = excluded.owner, \
+         ON CONFLICT (id) DO UPDATE SET name = excluded.name, \
          device = excluded.device, memory_bytes = excluded.memory_bytes, labels = excluded.labels, \
-         max_tasks = excluded.max_tasks, last_seen_at = excluded.last_seen_at",
+         max_tasks = excluded.max_tasks, last_seen_at = excluded.last_seen_at \
+         WHERE workers.owner = excluded.owner",
     )
     .bind(&id)
     .bind(&request.name)
@@ -65,7 +69,63 @@ pub async fn register_worker(
     .execute(&shared.db.write)
     .await
     .map_err(internal)?;
+    if stored.rows_affected() == 0 {
+        return Err(Status::permission_denied(format!(
+            "worker id {id:?} is registered with other credentials"
+        )));
+    }
     Ok(id)
+}
+
+/// Checks that `worker_id` was registered by `caller`; every worker call acts on leases held
+/// under that id. An unknown id is NOT_FOUND (the worker registers again).
+pub async fn check_worker_owner(
+    shared: &Shared,
+    caller: &Principal,
+    worker_id: &str,
+) -> Result<(), Status> {
+    let owner: Option<String> = sqlx::query_scalar("SELECT owner FROM workers WHERE id = ?")
+        .bind(worker_id)
+        .fetch_optional(&shared.db.read)
+        .await
+        .map_err(internal)?;
+    match owner {
+        None => Err(Status::not_found(format!(
+            "worker {worker_id:?} is not registered (call RegisterWorker)"
+        ))),
+        Some(owner) if owner == caller.name => Ok(()),
+        Some(_) => Err(Status::permission_denied(format!(
+            "worker {worker_id:?} is registered with other credentials"
+        ))),
+    }
+}
+
+/// Whether `caller` (through a worker it registered) holds a live lease on a task of `job_id`;
+/// with `writing`, the task's output prefix must also contain `key`. Workers reach only the
+/// objects of the jobs they are working on.
+pub async fn worker_may_access(
+    shared: &Shared,
+    caller: &Principal,
+    job_id: &str,
+    key: &str,
+    writing: bool,
+) -> Result<bool, Status> {
+    let prefixes: Vec<String> = sqlx::query_scalar(
+        "SELECT t.output_prefix FROM tasks t JOIN workers w ON w.id = t.worker_id \
+         WHERE t.job_id = ? AND t.state = 'leased' AND w.owner = ?",
+    )
+    .bind(job_id)
+    .bind(&caller.name)
+    .fetch_all(&shared.db.read)
+    .await
+    .map_err(internal)?;
+    Ok(if writing {
+        prefixes
+            .iter()
+            .any(|prefix| key.starts_with(prefix.as_str()))
+    } else {
+        !prefixes.is_empty()
+    })
 }
 
 #[derive(sqlx::FromRow)]
@@ -341,10 +401,10 @@ async fn check_lease(
         return Ok(Err(Status::not_found(format!("task {task_id} not found"))));
     };
     if task.fencing_token as u64 != token || task.worker_id != worker_id {
+        // Who holds the lease now, and under which token, is not the caller's business.
         return Ok(Err(Status::failed_precondition(format!(
-            "stale lease: task {task_id} is held under fencing token {} by {:?}, not token \
-             {token} by {worker_id:?}",
-            task.fencing_token, task.worker_id
+            "stale lease: task {task_id} is no longer held under fencing token {token} by \
+             {worker_id:?}"
         ))));
     }
     match task.state.as_str() {
@@ -791,15 +851,23 @@ async fn settle_job(
     batch: &mut EventBatch,
     job_id: &str,
 ) -> Result<(), sqlx::Error> {
-    let (state, open): (String, i64) = sqlx::query_as(
+    let (state, open, rendered): (String, i64, i64) = sqlx::query_as(
         "SELECT state, (SELECT COUNT(*) FROM tasks WHERE job_id = jobs.id \
-         AND state IN ('pending', 'ready', 'leased')) FROM jobs WHERE id = ?",
+         AND state IN ('pending', 'ready', 'leased')), \
+         (SELECT COUNT(*) FROM tasks WHERE job_id = jobs.id AND stage = 'render_stylized' \
+         AND state = 'succeeded') FROM jobs WHERE id = ?",
     )
     .bind(job_id)
     .fetch_one(&mut *conn)
     .await?;
     if open == 0 && !job_state::is_terminal(&state) {
-        set_job_state(conn, batch, job_id, job_state::SUCCEEDED, None).await?;
+        // A job whose final render failed and was rendered again succeeds once a render has.
+        if rendered > 0 {
+            set_job_state(conn, batch, job_id, job_state::SUCCEEDED, None).await?;
+        } else {
+            let error = "render_stylized failed: no render of the job succeeded";
+            set_job_state(conn, batch, job_id, job_state::FAILED, Some(error)).await?;
+        }
     }
     Ok(())
 }

@@ -1,6 +1,7 @@
 //! The state shared by the services and background tasks of one coordinator: database,
 //! storage, configuration, the live event feed, the "tasks became ready" notifier for
-//! long-polling workers, the group-commit writer, and the shutdown signal.
+//! long-polling workers, the group-commit writer, the shutdown signal, and the bound on
+//! concurrent input validations.
 
 use crate::config::CoordinatorConfig;
 use crate::db::Db;
@@ -9,7 +10,7 @@ use crate::storage::Storage;
 use crate::writer::Writer;
 use std::sync::atomic::AtomicI64;
 use stylenerf_proto::v1 as pb;
-use tokio::sync::{broadcast, watch, Notify};
+use tokio::sync::{broadcast, watch, Notify, Semaphore};
 
 pub struct Shared {
     pub db: Db,
@@ -25,6 +26,8 @@ pub struct Shared {
     pub shutdown: watch::Receiver<bool>,
     /// When `LeaseTask` next looks for expired leases itself (epoch ms).
     pub next_expiry_check: AtomicI64,
+    /// Bounds how many inputs are validated at once (decoding an image takes memory).
+    pub validations: Semaphore,
 }
 
 impl Shared {

@@ -12,7 +12,7 @@ use object_store::{
 use sha2::{Digest, Sha256};
 use std::sync::Arc;
 use stylenerf_proto::v1 as pb;
-use tokio::io::AsyncReadExt;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tonic::Status;
 
 /// Content of streamed reads is sent in chunks of this size.
@@ -152,10 +152,11 @@ impl Storage {
             .map_err(|e| storage_status(key, e))?
         {
             size += chunk.len() as u64;
-            tokio::io::AsyncWriteExt::write_all(&mut out, &chunk)
-                .await
-                .map_err(internal)?;
+            out.write_all(&chunk).await.map_err(internal)?;
         }
+        // tokio hands writes to a blocking thread: without this the last one may still be in
+        // flight when the caller reads the file.
+        out.flush().await.map_err(internal)?;
         Ok(size)
     }
 
@@ -175,6 +176,19 @@ impl Storage {
         key: &str,
         offset: u64,
     ) -> Result<impl Stream<Item = Result<pb::ObjectChunk, Status>> + Send + 'static, Status> {
+        if offset > 0 {
+            // A resumed download may start at the end (nothing left) but not beyond it.
+            let size = self.size(key).await?;
+            if offset > size {
+                return Err(invalid(
+                    "offset",
+                    format!("{offset} is beyond the end of {key:?} ({size} bytes)"),
+                ));
+            }
+            if offset == size {
+                return Ok(futures::stream::empty().left_stream());
+            }
+        }
         let options = GetOptions {
             range: (offset > 0).then_some(GetRange::Offset(offset)),
             ..GetOptions::default()
@@ -213,7 +227,7 @@ impl Storage {
                 position += data.len() as u64;
                 chunk
             });
-        Ok(stream)
+        Ok(stream.right_stream())
     }
 
     /// Objects under `prefix` (a key prefix ending in `/`, or empty), sorted by key.
@@ -302,8 +316,22 @@ fn storage_status(key: &str, err: object_store::Error) -> Status {
 }
 
 /// Checks that a caller-supplied object key is clean: relative, `/`-separated, no empty, `.`
-/// or `..` segments, no control characters, at most 1024 bytes.
+/// or `..` segments, no control characters, at most 1024 bytes, and naming an object (not
+/// ending in `/`).
 pub fn check_key(field: &str, key: &str) -> Result<(), Status> {
+    check_prefix(field, key)?;
+    if key.ends_with('/') {
+        return Err(invalid(
+            field,
+            format!("object key {key:?}: names a folder, not an object (ends with `/`)"),
+        ));
+    }
+    Ok(())
+}
+
+/// Checks a caller-supplied listing prefix: a clean key as for [`check_key`] that may end
+/// with `/`.
+pub fn check_prefix(field: &str, key: &str) -> Result<(), Status> {
     let why = if key.is_empty() {
         Some("must not be empty")
     } else if key.len() > 1024 {

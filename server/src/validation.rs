@@ -43,23 +43,41 @@ pub fn validate_dataset_archive(
     reader: impl Read,
     limits: &Limits,
 ) -> Result<DatasetSummary, String> {
+    let mut reader = std::io::BufReader::new(reader);
+    let head = std::io::BufRead::fill_buf(&mut reader).map_err(|e| e.to_string())?;
+    if let Some(kind) = compression(head) {
+        return Err(format!(
+            "a {kind} file: compressed archives are not supported; send an uncompressed tar \
+             (tar -cf scene.tar -C my_scene .)"
+        ));
+    }
     let mut archive = tar::Archive::new(reader);
     let entries = archive
         .entries()
-        .map_err(|e| format!("not a tar archive: {e}"))?;
+        .map_err(|e| format!("not a tar archive: {}", printable(&e.to_string())))?;
     let mut members: HashSet<String> = HashSet::new();
     let mut scene_files: Vec<(String, Vec<u8>)> = Vec::new();
     let mut count = 0u64;
     let mut total = 0u64;
     for entry in entries {
-        let mut entry = entry.map_err(|e| format!("corrupt tar archive: {e}"))?;
+        let mut entry = entry.map_err(|e| {
+            format!(
+                "corrupt or not a tar archive: {}",
+                printable(&e.to_string())
+            )
+        })?;
         let kind = entry.header().entry_type();
         if kind.is_pax_global_extensions() {
             continue;
         }
-        let raw_path = String::from_utf8_lossy(&entry.path_bytes()).into_owned();
-        let path = normalize_member_path(&raw_path)
-            .map_err(|why| format!("member {raw_path:?}: {why}"))?;
+        let raw_path = printable(&String::from_utf8_lossy(&entry.path_bytes()));
+        let path = match normalize_member_path(&raw_path) {
+            // `tar -C dir .` starts with the folder itself, `./`.
+            Ok(None) if kind.is_dir() => continue,
+            Ok(None) => return Err(format!("member {raw_path:?}: empty path")),
+            Ok(Some(path)) => path,
+            Err(why) => return Err(format!("member {raw_path:?}: {why}")),
+        };
         if !(kind.is_file() || kind.is_dir() || kind.is_contiguous()) {
             return Err(format!(
                 "member {raw_path:?}: only regular files and directories are allowed, not {}",
@@ -98,21 +116,27 @@ pub fn validate_dataset_archive(
                 .map_err(|e| format!("member {raw_path:?}: {e}"))?;
             scene_files.push((path.clone(), content));
         }
-        members.insert(path);
+        // Unpacking keeps the last of two members with one path, while this check would
+        // have read the first.
+        if !members.insert(path) && !kind.is_dir() {
+            return Err(format!("member {raw_path:?} appears twice"));
+        }
     }
-    // The shallowest scene file wins; at equal depth, in the order of SCENE_FILES.
+    // As the worker finds it: the shallowest folder (two levels down at most) holding a
+    // scene file, the first by name at equal depth, and in it the first of SCENE_FILES.
     let rank = |path: &str| {
-        let depth = path.matches('/').count();
-        let name = path.rsplit('/').next().unwrap_or("");
+        let (dir, name) = path.rsplit_once('/').unwrap_or(("", path));
         let order = SCENE_FILES
             .iter()
             .position(|(n, _)| *n == name)
             .unwrap_or(0);
-        (depth, order)
+        (path.matches('/').count(), dir.to_string(), order)
     };
+    scene_files.retain(|(path, _)| path.matches('/').count() <= MAX_SCENE_DEPTH);
     scene_files.sort_by_key(|(path, _)| rank(path));
     let (scene_path, content) = scene_files.into_iter().next().ok_or_else(|| {
-        "no scene file: expected transforms.json, transforms_train.json or poses_bounds.npy"
+        "no scene file: expected transforms.json, transforms_train.json or poses_bounds.npy \
+         at the root of the archive or in a folder (two levels down at most)"
             .to_string()
     })?;
     let dir = scene_path
@@ -139,8 +163,40 @@ pub fn validate_dataset_archive(
     })
 }
 
-/// A member path made relative and `/`-separated, or why it is not acceptable.
-fn normalize_member_path(raw: &str) -> Result<String, &'static str> {
+/// Deepest folder (counted from the archive's root) the worker looks for the scene file in.
+const MAX_SCENE_DEPTH: usize = 2;
+
+/// The compression format a file starting with `head` is in, if any.
+fn compression(head: &[u8]) -> Option<&'static str> {
+    const MAGIC: [(&[u8], &str); 4] = [
+        (&[0x1f, 0x8b], "gzip"),
+        (b"BZh", "bzip2"),
+        (&[0xfd, b'7', b'z', b'X', b'Z', 0], "xz"),
+        (&[0x28, 0xb5, 0x2f, 0xfd], "zstd"),
+    ];
+    MAGIC
+        .iter()
+        .find(|(magic, _)| head.starts_with(magic))
+        .map(|(_, kind)| *kind)
+}
+
+/// `text` with anything but printable characters replaced, and cut to 200 characters: archive
+/// errors quote bytes from the archive, which may be binary.
+fn printable(text: &str) -> String {
+    let mut out: String = text
+        .chars()
+        .map(|c| if c.is_control() { '\u{fffd}' } else { c })
+        .take(200)
+        .collect();
+    if text.chars().count() > 200 {
+        out.push('…');
+    }
+    out
+}
+
+/// A member path made relative and `/`-separated (`None` for the archive's root, `./`), or
+/// why it is not acceptable.
+fn normalize_member_path(raw: &str) -> Result<Option<String>, &'static str> {
     if raw.contains('\\') {
         return Err("backslashes are not allowed in paths");
     }
@@ -155,10 +211,7 @@ fn normalize_member_path(raw: &str) -> Result<String, &'static str> {
             }
         }
     }
-    if parts.is_empty() {
-        return Err("empty path");
-    }
-    Ok(parts.join("/"))
+    Ok((!parts.is_empty()).then(|| parts.join("/")))
 }
 
 fn describe_entry_type(kind: tar::EntryType) -> &'static str {
@@ -238,7 +291,7 @@ fn check_transforms(
             .get("transform_matrix")
             .and_then(|m| m.as_array())
             .is_some_and(|rows| {
-                rows.len() == 4
+                (rows.len() == 3 || rows.len() == 4)
                     && rows.iter().all(|row| {
                         row.as_array().is_some_and(|r| {
                             r.len() == 4 && r.iter().all(|x| x.as_f64().is_some_and(f64::is_finite))
@@ -247,7 +300,7 @@ fn check_transforms(
             });
         if !matrix_ok {
             return Err(format!(
-                "frames[{i}].transform_matrix must be a 4x4 matrix of numbers"
+                "frames[{i}].transform_matrix must be a 4×4 or 3×4 matrix of finite numbers"
             ));
         }
         if !has_intrinsics(obj) && !has_intrinsics(frame) {
@@ -259,6 +312,11 @@ fn check_transforms(
             .get("file_path")
             .and_then(|p| p.as_str())
             .ok_or_else(|| format!("frames[{i}].file_path is missing"))?;
+        if file_path.starts_with('/') || file_path.contains('\\') {
+            return Err(format!(
+                "frames[{i}].file_path {file_path:?} must be a relative path with `/` separators"
+            ));
+        }
         if !image_present(dir, file_path, members) {
             return Err(format!(
                 "frames[{i}].file_path {file_path:?} is not in the archive"
@@ -440,7 +498,11 @@ mod tests {
 
     #[test]
     fn normalizes_member_paths() {
-        assert_eq!(normalize_member_path("./a/b.png").unwrap(), "a/b.png");
+        assert_eq!(
+            normalize_member_path("./a/b.png").unwrap().as_deref(),
+            Some("a/b.png")
+        );
+        assert_eq!(normalize_member_path("./").unwrap(), None);
         assert!(normalize_member_path("/etc/passwd").is_err());
         assert!(normalize_member_path("a/../../b").is_err());
     }
@@ -465,5 +527,71 @@ mod tests {
         );
         let short = archive(&[("poses_bounds.npy", &npy), ("images/a.jpg", b"x")]);
         assert!(validate_dataset_archive(&short[..], &Limits::default()).is_err());
+    }
+
+    /// Whatever the bytes, validation answers with a summary or a printable reason, never a
+    /// panic. `PROPTEST_CASES` cases per property (64 unless set).
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+        use proptest::test_runner::Config;
+
+        fn config() -> Config {
+            Config {
+                cases: std::env::var("PROPTEST_CASES")
+                    .ok()
+                    .and_then(|c| c.parse().ok())
+                    .unwrap_or(64),
+                failure_persistence: None,
+                ..Config::default()
+            }
+        }
+
+        fn printable(reason: &str) -> bool {
+            !reason.chars().any(char::is_control)
+        }
+
+        fn damage(mut bytes: Vec<u8>, flips: &[(prop::sample::Index, u8)], cut: usize) -> Vec<u8> {
+            for (at, byte) in flips {
+                let i = at.index(bytes.len());
+                bytes[i] = *byte;
+            }
+            bytes.truncate(cut.min(bytes.len()));
+            bytes
+        }
+
+        proptest! {
+            #![proptest_config(config())]
+
+            #[test]
+            fn archives(bytes in prop::collection::vec(any::<u8>(), 0..2048),
+                        flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 0..8),
+                        cut in 0usize..4096) {
+                let valid = archive(&[
+                    ("scene/transforms_train.json", TRANSFORMS),
+                    ("scene/train/r_0.png", b"x"),
+                ]);
+                for data in [bytes, damage(valid, &flips, cut)] {
+                    if let Err(reason) = validate_dataset_archive(&data[..], &Limits::default()) {
+                        prop_assert!(printable(&reason), "{:?}", reason);
+                    }
+                }
+            }
+
+            #[test]
+            fn style_images(bytes in prop::collection::vec(any::<u8>(), 0..2048),
+                            flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 0..8),
+                            cut in 0usize..4096) {
+                let mut png = std::io::Cursor::new(Vec::new());
+                image::RgbImage::new(9, 7)
+                    .write_to(&mut png, image::ImageFormat::Png)
+                    .unwrap();
+                for data in [bytes, damage(png.into_inner(), &flips, cut)] {
+                    if let Ok(summary) = validate_style_image(&data, &Limits::default()) {
+                        prop_assert!(summary.width > 0 && summary.height > 0);
+                    }
+                }
+            }
+        }
     }
 }

@@ -58,7 +58,7 @@ pub fn run(args: BenchNerfArgs) -> anyhow::Result<()> {
         };
         generate(&opts, &data)?;
     }
-    let mut cfg: NerfConfig = args.training.config(NerfConfig::preset)?;
+    let mut cfg: NerfConfig = args.training.config("nerf_pretrain", NerfConfig::preset)?;
     let scene = Scene::load(&data, &cfg.load_options())?;
     cfg.eval_every = (cfg.steps / args.evals.max(1)).max(1);
     let out = work.join(format!("nerf-{}", args.training.preset));

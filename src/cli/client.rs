@@ -4,6 +4,7 @@
 //! people, one JSON document (or one per line for event streams) for scripts.
 
 use super::client_view::WatchView;
+use super::terminal_safe::TerminalSafe;
 use anyhow::Context;
 use clap::{Args, Subcommand, ValueEnum};
 use futures::StreamExt;
@@ -309,7 +310,7 @@ pub fn run(command: ClientCommand) -> anyhow::Result<()> {
         .worker_threads(2)
         .enable_all()
         .build()?;
-    let mut stdout = std::io::stdout().lock();
+    let mut stdout = TerminalSafe::new(std::io::stdout().lock());
     runtime.block_on(execute(command, &mut stdout))
 }
 
@@ -769,11 +770,9 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn commands_print_json() {
         let dir = tempfile::tempdir().unwrap();
-        let coordinator = stylenerf_server::Coordinator::start(
-            stylenerf_server::CoordinatorConfig::local(&dir.path().join("coord")),
-        )
-        .await
-        .unwrap();
+        let mut config = stylenerf_server::CoordinatorConfig::local(&dir.path().join("coord"));
+        config.settings_check = Some(super::super::common::engine_settings_check());
+        let coordinator = stylenerf_server::Coordinator::start(config).await.unwrap();
         let endpoint = coordinator.endpoint();
         let scene = dir.path().join("scene");
         let options = GenerateOptions {
@@ -798,6 +797,32 @@ mod tests {
             &common,
         ]
         .concat();
+        // Overrides that would exhaust or break a worker are refused at submission.
+        for (set, key) in [
+            (
+                "nerf_pretrain.rays_per_batch=1000000000000",
+                "nerf_pretrain.rays_per_batch",
+            ),
+            (
+                "nerf_pretrain.field.grid.log2_table_size=60",
+                "log2_table_size",
+            ),
+            ("nerf_pretrain.stpes=10", "nerf_pretrain.stpes"),
+        ] {
+            let refused = [
+                &[
+                    "submit", "--data", &scene, "--style", &style, "--preset", "tiny",
+                ][..],
+                &["--set", set],
+                &common,
+            ]
+            .concat();
+            let err = run_line(&refused).await.unwrap_err().to_string();
+            assert!(
+                err.contains("config_overrides_json.") && err.contains(key),
+                "{set}: {err}"
+            );
+        }
         let submitted: Value = serde_json::from_str(&run_line(&submit).await.unwrap()).unwrap();
         assert_eq!(submitted["created"], true);
         assert_eq!(submitted["job"]["state"], "queued");

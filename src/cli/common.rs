@@ -7,7 +7,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use stylenerf_engine::device::parse_device;
 use stylenerf_engine::preset::{apply_overrides, parse_override, Preset};
-use stylenerf_engine::stages::StageControl;
+use stylenerf_engine::stages::{limits, StageControl};
 
 /// Preset, overrides and device, shared by every training command.
 #[derive(Debug, Clone, Args)]
@@ -24,9 +24,11 @@ pub struct TrainingArgs {
 }
 
 impl TrainingArgs {
-    /// The stage's preset configuration with the overrides applied.
+    /// The configuration of `stage`: its preset with the overrides applied, within the
+    /// stage's bounds.
     pub fn config<T: serde::Serialize + serde::de::DeserializeOwned>(
         &self,
+        stage: &str,
         preset: impl Fn(Preset) -> T,
     ) -> anyhow::Result<T> {
         let overrides = self
@@ -34,12 +36,20 @@ impl TrainingArgs {
             .iter()
             .map(|o| parse_override(o))
             .collect::<Result<Vec<_>, _>>()?;
-        Ok(apply_overrides(&preset(self.preset), &overrides)?)
+        let config = apply_overrides(&preset(self.preset), &overrides)?;
+        limits::check(stage, &config)?;
+        Ok(config)
     }
 
     pub fn device(&self) -> anyhow::Result<candle_core::Device> {
         Ok(parse_device(&self.device)?)
     }
+}
+
+/// The engine's check of a job's preset and overrides, for a coordinator this binary starts:
+/// a mistyped or out-of-range override is refused at submission instead of failing a worker.
+pub fn engine_settings_check() -> stylenerf_server::SettingsCheck {
+    stylenerf_server::SettingsCheck(std::sync::Arc::new(limits::check_job_overrides))
 }
 
 /// A progress bar for one stage and a [`StageControl`] that feeds it.
@@ -66,4 +76,14 @@ pub fn stage_progress(stage: &str) -> (ProgressBar, StageControl) {
         b.set_message(msg);
     });
     (bar, control)
+}
+
+#[cfg(test)]
+mod tests {
+    use stylenerf_engine::stages::camera_paths::PathKind;
+
+    #[test]
+    fn the_coordinator_accepts_the_camera_paths_the_engine_renders() {
+        assert_eq!(stylenerf_server::CAMERA_PATH_KINDS, PathKind::NAMES);
+    }
 }

@@ -11,7 +11,8 @@ pub struct CoordinatorCommand {
 }
 
 pub fn run(command: CoordinatorCommand) -> anyhow::Result<()> {
-    let config = command.args.into_config()?;
+    let mut config = command.args.into_config()?;
+    config.settings_check = Some(super::common::engine_settings_check());
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;

@@ -2,6 +2,7 @@
 
 use clap::{Args, Parser, Subcommand};
 
+mod bench_chaos;
 mod bench_coordinator;
 mod bench_nerf;
 mod bench_vgg;
@@ -14,6 +15,7 @@ mod nerf;
 mod run;
 mod scene;
 mod stylize;
+mod terminal_safe;
 mod up;
 mod weights;
 mod worker;
@@ -90,6 +92,9 @@ pub enum BenchCommand {
     Coordinator(stylenerf_server::bench::BenchOptions),
     /// VGG encoder forward and forward+backward time, frozen vs plain convolutions.
     Vgg(bench_vgg::BenchVggArgs),
+    /// The service under SIGKILLs: jobs complete, stages complete once, kills cost at most a
+    /// checkpoint interval.
+    Chaos(bench_chaos::BenchChaosArgs),
 }
 
 /// `demo` draws progress bars on stderr: unless a log level was asked for, keep the embedded
@@ -131,5 +136,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Coordinator(options)) => bench_coordinator::run(options),
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
+        Command::Bench(BenchCommand::Chaos(args)) => bench_chaos::run(args),
     }
 }

@@ -44,7 +44,7 @@ pub fn run(cmd: NerfCommand) -> anyhow::Result<()> {
             out,
             training,
         } => {
-            let cfg = training.config(nerf_pretrain::NerfConfig::preset)?;
+            let cfg = training.config("nerf_pretrain", nerf_pretrain::NerfConfig::preset)?;
             let device = training.device()?;
             let scene = Scene::load(&data, &cfg.load_options())
                 .with_context(|| format!("loading {}", data.display()))?;
@@ -74,7 +74,7 @@ pub fn run(cmd: NerfCommand) -> anyhow::Result<()> {
             out,
             training,
         } => {
-            let cfg = training.config(render_views::RenderViewsConfig::preset)?;
+            let cfg = training.config("render_views", render_views::RenderViewsConfig::preset)?;
             let device = training.device()?;
             let (bar, control) = stage_progress("render_views");
             let outcome = render_views::run(&field, &cfg, &out, &control, &device)?;

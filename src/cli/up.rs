@@ -51,6 +51,7 @@ async fn up(args: UpArgs) -> anyhow::Result<()> {
     let data_dir = args.data_dir.canonicalize()?;
     let mut config = CoordinatorConfig::local(&data_dir.join("coordinator"));
     config.listen = args.listen;
+    config.settings_check = Some(super::common::engine_settings_check());
     let coordinator = Coordinator::start(config)
         .await
         .with_context(|| format!("starting the coordinator on {}", args.listen))?;

@@ -21,6 +21,8 @@ pub mod config;
 pub mod connection;
 pub mod error;
 pub mod progress;
+pub mod retry;
+pub mod scratch;
 pub mod stages;
 pub mod store;
 pub mod task;

@@ -11,11 +11,12 @@ use stylenerf_engine::camera::Camera;
 use stylenerf_engine::field::saved;
 use stylenerf_engine::image_io;
 use stylenerf_engine::scene::Scene;
+use stylenerf_engine::stages::camera_paths::{camera_path, PathKind};
 use stylenerf_engine::stages::decoder_pretrain::{self, DecoderPretrainConfig, StyleImage};
 use stylenerf_engine::stages::mutual_learning::{self, MutualConfig};
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
 use stylenerf_engine::stages::render_stylized::{self, RenderStylizedConfig};
-use stylenerf_engine::stages::render_views::{self, interpolated_path, RenderViewsConfig};
+use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
 use stylenerf_engine::stages::Outcome;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::RenderedViews;
@@ -185,8 +186,8 @@ fn load_styles(paths: &[std::path::PathBuf]) -> stylenerf_engine::Result<Vec<Sty
 struct RenderRequest {
     /// `style-0:0.3,style-1:0.7`.
     blend: Option<String>,
-    /// `interpolate` (default) or `train`.
-    kind: String,
+    /// `None`: `render_views`' path.
+    kind: Option<PathKind>,
     num_frames: usize,
     fps: Option<f64>,
 }
@@ -195,16 +196,12 @@ impl RenderRequest {
     fn parse(raw: &serde_json::Map<String, serde_json::Value>) -> Result<Self, TaskError> {
         let mut r = RenderRequest::default();
         if let Some(path) = raw.get("camera_path") {
-            r.kind = path["kind"].as_str().unwrap_or_default().to_string();
+            r.kind = match path["kind"].as_str().unwrap_or_default() {
+                "" => None,
+                kind => Some(kind.parse()?),
+            };
             r.num_frames = path["num_frames"].as_u64().unwrap_or(0) as usize;
             r.fps = path["fps"].as_f64().filter(|f| *f > 0.0);
-            if !matches!(r.kind.as_str(), "" | "interpolate" | "train") {
-                return Err(TaskError::permanent(format!(
-                    "camera_path.kind: unknown kind `{}` (this worker renders `interpolate` \
-                     and `train` paths)",
-                    r.kind
-                )));
-            }
         }
         if let Some(serde_json::Value::Array(weights)) = raw.get("style_blend") {
             let parts: Vec<String> = weights
@@ -228,22 +225,23 @@ impl RenderRequest {
         field_dir: &std::path::Path,
         device: &candle_core::Device,
     ) -> stylenerf_engine::Result<Option<Vec<Camera>>> {
-        if self.kind.is_empty() && self.num_frames == 0 {
+        if self.kind.is_none() && self.num_frames == 0 {
             return Ok(None);
         }
         let (_, meta) = saved::load(field_dir, device)?;
         let train = meta.train_cameras;
-        Ok(Some(match self.kind.as_str() {
-            "train" => train,
-            _ => {
-                let frames = if self.num_frames == 0 {
-                    60
-                } else {
-                    self.num_frames
-                };
-                interpolated_path(&train, train.len().clamp(2, 8), frames)
-            }
-        }))
+        let frames = if self.num_frames == 0 {
+            60
+        } else {
+            self.num_frames
+        };
+        let kind = self.kind.unwrap_or(PathKind::Interpolate);
+        Ok(Some(camera_path(
+            kind,
+            &train,
+            frames,
+            train.len().clamp(2, 8),
+        )))
     }
 }
 

@@ -20,6 +20,7 @@ use crate::archive::{self, ArchiveLimits};
 use crate::connection::Clients;
 use crate::error::TaskError;
 use crate::progress::ProgressTracker;
+use crate::retry::with_retries;
 use crate::stages;
 use crate::store::Store;
 use crate::task_config::TaskConfig;
@@ -246,7 +247,10 @@ async fn upload_checkpoint(
     Ok(Some(step))
 }
 
-/// Downloads the newest complete checkpoint under `prefix` into `dir`; returns its step.
+/// Downloads the newest good checkpoint under `prefix` into `dir`; returns its step. A
+/// checkpoint that does not load (truncated, corrupt, non-finite values) is removed from
+/// `dir` and the next older one tried, so one bad upload costs one checkpoint interval, not
+/// the task's attempts.
 async fn restore_checkpoint(
     store: &Store,
     prefix: &str,
@@ -257,7 +261,7 @@ async fn restore_checkpoint(
         .iter()
         .filter_map(|o| o.key.strip_prefix(prefix).map(|n| (n, o)))
         .collect();
-    let newest = names
+    let mut complete: Vec<u64> = names
         .keys()
         .filter_map(|n| n.strip_prefix("step-")?.strip_suffix(".json")?.parse().ok())
         .filter(|&step: &u64| {
@@ -265,17 +269,34 @@ async fn restore_checkpoint(
                 .iter()
                 .all(|f| names.contains_key(f.as_str()))
         })
-        .max();
-    let Some(step) = newest else {
-        return Ok(None);
-    };
-    for file in checkpoint_files(step) {
-        let object = names[file.as_str()];
-        store
-            .download(&object.key, &object.sha256, &dir.join(&file))
-            .await?;
+        .collect();
+    complete.sort_unstable_by(|a, b| b.cmp(a));
+    for step in complete {
+        for file in checkpoint_files(step) {
+            let object = names[file.as_str()];
+            store
+                .download(&object.key, &object.sha256, &dir.join(&file))
+                .await?;
+        }
+        let local = CheckpointDir::new(dir, usize::MAX);
+        let checked = tokio::task::spawn_blocking(move || {
+            local
+                .load::<serde_json::Value>(step, &Device::Cpu)
+                .map(drop)
+        })
+        .await
+        .map_err(|e| TaskError::retryable(format!("checking checkpoint {step}: {e}")))?;
+        match checked {
+            Ok(_) => return Ok(Some(step)),
+            Err(error) => {
+                tracing::warn!(step, %error, "passing over a bad stored checkpoint");
+                for file in checkpoint_files(step) {
+                    let _ = tokio::fs::remove_file(dir.join(file)).await;
+                }
+            }
+        }
     }
-    Ok(Some(step))
+    Ok(None)
 }
 
 /// Sends heartbeats every `interval` until aborted; stops the task on cancellation or a lost
@@ -408,7 +429,13 @@ async fn run_task(
                 outputs: outputs.clone(),
                 metrics: metrics.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             };
-            match clients.workers.clone().complete_task(request).await {
+            let completed = with_retries("CompleteTask", || {
+                let mut workers = clients.workers.clone();
+                let request = request.clone();
+                async move { workers.complete_task(request).await }
+            })
+            .await;
+            match completed {
                 Ok(_) => TaskResult::Completed { outputs, metrics },
                 Err(s) => TaskResult::Failed {
                     reason: format!("CompleteTask was refused: {}", s.message()),
@@ -434,17 +461,21 @@ async fn run_task(
             TaskResult::Released { checkpoint_step }
         }
         (None, Err(e)) => {
+            // The job's owner sees the reason: the worker's folders are none of their business.
+            let reason = e
+                .reason
+                .replace(&settings.scratch_dir.display().to_string(), "<scratch>");
             fail(
                 &clients,
                 &settings,
                 task_id,
                 fencing_token,
-                &e.reason,
+                &reason,
                 e.retryable,
             )
             .await;
             TaskResult::Failed {
-                reason: e.reason,
+                reason,
                 retryable: e.retryable,
             }
         }
@@ -471,7 +502,13 @@ async fn fail(
         reason: reason.to_string(),
         retryable,
     };
-    if let Err(s) = clients.workers.clone().fail_task(request).await {
+    let failed = with_retries("FailTask", || {
+        let mut workers = clients.workers.clone();
+        let request = request.clone();
+        async move { workers.fail_task(request).await }
+    })
+    .await;
+    if let Err(s) = failed {
         tracing::warn!(task_id, error = %s, "FailTask was refused");
     }
 }

@@ -15,7 +15,7 @@
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 use serde_json::Value;
-use stylenerf_engine::preset::{apply_overrides, Preset};
+use stylenerf_engine::preset::{flatten_overrides, stage_overrides, Preset};
 
 use crate::error::TaskError;
 
@@ -51,12 +51,11 @@ impl TaskConfig {
             Some(Value::String(s)) => s.parse()?,
             Some(v) => return Err(bad(format!("`preset` must be a string, not {v}"))),
         };
-        let mut overrides = Vec::new();
-        match raw.get("overrides") {
-            None | Some(Value::Null) => {}
-            Some(Value::Object(map)) => flatten("", map, &mut overrides),
+        let overrides = match raw.get("overrides") {
+            None | Some(Value::Null) => Vec::new(),
+            Some(Value::Object(map)) => flatten_overrides(map),
             Some(v) => return Err(bad(format!("`overrides` must be an object, not {v}"))),
-        }
+        };
         for (key, _) in &overrides {
             let stage = key.split('.').next().unwrap_or_default();
             if !STAGE_NAMES.contains(&stage) || !key.contains('.') {
@@ -74,40 +73,15 @@ impl TaskConfig {
         })
     }
 
-    /// The overrides of `stage`, with the stage prefix removed.
-    pub fn stage_overrides(&self, stage: &str) -> Vec<(String, Value)> {
-        self.overrides
-            .iter()
-            .filter_map(|(k, v)| {
-                k.strip_prefix(stage)
-                    .and_then(|rest| rest.strip_prefix('.'))
-                    .map(|rest| (rest.to_string(), v.clone()))
-            })
-            .collect()
-    }
-
-    /// `stage`'s configuration: its preset with its overrides applied. Errors name the full key.
+    /// `stage`'s configuration: its preset with its overrides applied, within its bounds.
+    /// Errors name the full key.
     pub fn stage_config<T: Serialize + DeserializeOwned>(
         &self,
         stage: &str,
         preset: impl Fn(Preset) -> T,
     ) -> Result<T, TaskError> {
-        apply_overrides(&preset(self.preset), &self.stage_overrides(stage))
+        stage_overrides(&preset(self.preset), stage, &self.overrides)
             .map_err(|e| TaskError::permanent(format!("overrides of {stage}: {e}")))
-    }
-}
-
-fn flatten(prefix: &str, map: &serde_json::Map<String, Value>, out: &mut Vec<(String, Value)>) {
-    for (k, v) in map {
-        let key = if prefix.is_empty() {
-            k.clone()
-        } else {
-            format!("{prefix}.{k}")
-        };
-        match v {
-            Value::Object(inner) => flatten(&key, inner, out),
-            leaf => out.push((key, leaf.clone())),
-        }
     }
 }
 
@@ -115,6 +89,7 @@ fn flatten(prefix: &str, map: &serde_json::Map<String, Value>, out: &mut Vec<(St
 mod tests {
     use super::*;
     use stylenerf_engine::stages::nerf_pretrain::NerfConfig;
+    use stylenerf_engine::stages::render_views::RenderViewsConfig;
 
     #[test]
     fn flat_and_nested_overrides_reach_their_stage() {
@@ -127,7 +102,10 @@ mod tests {
         assert_eq!(c.preset, Preset::Tiny);
         let cfg: NerfConfig = c.stage_config("nerf_pretrain", NerfConfig::preset).unwrap();
         assert_eq!((cfg.steps, cfg.field.grid.levels), (7, 3));
-        assert_eq!(c.stage_overrides("render_views").len(), 1);
+        let views: RenderViewsConfig = c
+            .stage_config("render_views", RenderViewsConfig::preset)
+            .unwrap();
+        assert_eq!(views.path_frames, 2);
     }
 
     #[test]

@@ -14,6 +14,7 @@ use tokio::task::JoinSet;
 
 use crate::config::WorkerConfig;
 use crate::connection::Clients;
+use crate::scratch::ScratchDir;
 use crate::task::{start_task, RunSettings, StopReason, TaskResult, TaskStop};
 
 /// What a worker did, for logs, tests and embedding programs.
@@ -64,6 +65,8 @@ pub struct Worker {
     settings: Arc<RunSettings>,
     capabilities: pb::Capabilities,
     handle: WorkerHandle,
+    /// The locked scratch folder of the current worker id (see [`ScratchDir`]).
+    scratch: Option<ScratchDir>,
 }
 
 /// What [`Worker::run`] did.
@@ -111,6 +114,7 @@ impl Worker {
                 events: broadcast::channel(256).0,
             },
             config,
+            scratch: None,
         };
         worker
             .register_again(worker.config.worker_id.clone())
@@ -138,7 +142,12 @@ impl Worker {
             .scratch_dir
             .clone()
             .unwrap_or_else(|| std::env::temp_dir().join("stylenerf-worker"));
-        settings.scratch_dir = root.join(&reply.worker_id);
+        if self.scratch.as_ref().map(|s| s.path()) != Some(&root.join(&reply.worker_id)) {
+            let scratch = ScratchDir::claim(&root, &reply.worker_id)
+                .with_context(|| format!("scratch folder under {}", root.display()))?;
+            settings.scratch_dir = scratch.path().to_path_buf();
+            self.scratch = Some(scratch);
+        }
         tracing::info!(
             worker_id = %reply.worker_id,
             name = %self.config.name,

@@ -137,6 +137,61 @@ async fn a_second_worker_resumes_from_the_first_ones_checkpoint() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_truncated_newest_checkpoint_costs_one_interval_not_the_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let coordinator = coordinator(dir.path()).await;
+    let overrides = serde_json::json!({"nerf_pretrain": {"steps": 600}});
+    let job = submit(&coordinator, dir.path(), overrides, 0).await;
+    let first = spawn_worker(worker_config(&coordinator, dir.path())).await;
+    let ckpt = format!("jobs/{job}/nerf_pretrain/ckpt/");
+    let step_of = |key: &str| -> Option<u64> {
+        key.rsplit('/')
+            .next()?
+            .strip_prefix("step-")?
+            .strip_suffix(".json")?
+            .parse()
+            .ok()
+    };
+    eventually(Duration::from_secs(60), || async {
+        let steps = list(&coordinator, &ckpt)
+            .await
+            .iter()
+            .filter_map(|k| step_of(k))
+            .count();
+        (steps >= 2).then_some(())
+    })
+    .await;
+    first.stop().await;
+    let mut steps: Vec<u64> = list(&coordinator, &ckpt)
+        .await
+        .iter()
+        .filter_map(|k| step_of(k))
+        .collect();
+    steps.sort_unstable();
+    let (older, newest) = (steps[steps.len() - 2], steps[steps.len() - 1]);
+    // The store loses the end of the newest checkpoint's tensors (a torn copy, a bad disk).
+    let weights = dir
+        .path()
+        .join("artifacts")
+        .join(format!("{ckpt}step-{newest:08}.safetensors"));
+    let bytes = std::fs::read(&weights).unwrap();
+    std::fs::write(&weights, &bytes[..bytes.len() / 3]).unwrap();
+
+    let mut second = spawn_worker(worker_config(&coordinator, dir.path())).await;
+    let resumed_from = second
+        .wait_for(Duration::from_secs(30), |e| match e {
+            WorkerEvent::TaskStarted { resumed_from, .. } => Some(*resumed_from),
+            _ => None,
+        })
+        .await;
+    assert_eq!(resumed_from, older, "checkpoints {steps:?}");
+    let (_, result) = second.wait_for(Duration::from_secs(120), finished).await;
+    assert!(matches!(result, TaskResult::Completed { .. }), "{result:?}");
+    second.stop().await;
+    coordinator.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancelling_the_job_stops_the_stage_within_seconds() {
     let dir = tempfile::tempdir().unwrap();
     let coordinator = coordinator(dir.path()).await;

@@ -187,12 +187,13 @@ impl<'a> Obj<'a> {
         let Some(x) = self.opt_f32(key)? else {
             return Ok(None);
         };
-        if x >= 1.0 && x.fract() == 0.0 && x <= 65_535.0 {
+        let max = crate::scene::MAX_SIDE;
+        if x >= 1.0 && x.fract() == 0.0 && x <= max as f32 {
             Ok(Some(x as u32))
         } else {
             Err(self.err(
                 key,
-                format!("expected a positive whole number of pixels, found {x}"),
+                format!("expected a whole number of pixels from 1 to {max}, found {x}"),
             ))
         }
     }

@@ -14,7 +14,9 @@ pub const STAGES: [&str; 5] = [
     "mutual_learning",
     "render_stylized",
 ];
+pub mod camera_paths;
 pub mod decoder_pretrain;
+pub mod limits;
 pub mod mutual_learning;
 pub mod nerf_pretrain;
 pub mod render_stylized;

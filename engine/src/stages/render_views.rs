@@ -8,10 +8,10 @@ use std::path::Path;
 use candle_core::Device;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::Camera;
 use crate::field::saved;
 use crate::preset::Preset;
 use crate::render::render_image;
+use crate::stages::camera_paths::interpolated_path;
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::views::{RenderedViews, ViewInfo, ViewKind};
 use crate::{EngineError, Result};
@@ -46,23 +46,6 @@ impl RenderViewsConfig {
             },
         }
     }
-}
-
-/// A closed path through `keyframes` evenly spaced cameras of `cameras`, `frames` poses long.
-pub fn interpolated_path(cameras: &[Camera], keyframes: usize, frames: usize) -> Vec<Camera> {
-    if cameras.is_empty() || frames == 0 {
-        return Vec::new();
-    }
-    let keys: Vec<Camera> = (0..keyframes.clamp(1, cameras.len()))
-        .map(|i| cameras[i * cameras.len() / keyframes.clamp(1, cameras.len())])
-        .collect();
-    (0..frames)
-        .map(|f| {
-            let x = f as f32 * keys.len() as f32 / frames as f32;
-            let i = x.floor() as usize;
-            keys[i % keys.len()].interpolate(&keys[(i + 1) % keys.len()], x - i as f32)
-        })
-        .collect()
 }
 
 /// Renders the views of the field in `field_dir` into `out`.

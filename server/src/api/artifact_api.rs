@@ -1,9 +1,11 @@
-//! `ArtifactService`: object access under `jobs/` for workers without direct store access.
+//! `ArtifactService`: object access under `jobs/` for workers without direct store access,
+//! limited to the jobs the caller's workers hold leases on.
 
-use crate::auth::{require, WORKER_ROLES};
+use crate::auth::{require, Principal, Role, WORKER_ROLES};
 use crate::errors::invalid;
+use crate::scheduler;
 use crate::state::Shared;
-use crate::storage::{check_key, check_sha256};
+use crate::storage::{check_key, check_prefix, check_sha256};
 use futures::StreamExt;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -16,13 +18,44 @@ pub struct ArtifactApi {
     pub shared: Arc<Shared>,
 }
 
-#[allow(clippy::result_large_err)]
-fn check_job_key(field: &str, key: &str) -> Result<(), Status> {
-    check_key(field, key)?;
-    if !key.starts_with("jobs/") {
-        return Err(invalid(field, "workers may only access keys under jobs/"));
+/// Checks that a worker may reach `key` (an object key, or a listing prefix with `prefix`):
+/// it must lie under `jobs/<job>/` of a job on which the caller holds a live lease, and a
+/// write must fall in the leased task's output prefix. Admins may read any job's objects.
+async fn check_worker_key(
+    shared: &Shared,
+    caller: &Principal,
+    field: &str,
+    key: &str,
+    access: Access,
+) -> Result<(), Status> {
+    match access {
+        Access::List => check_prefix(field, key)?,
+        Access::Read | Access::Write => check_key(field, key)?,
     }
-    Ok(())
+    let job_id = key
+        .strip_prefix("jobs/")
+        .and_then(|rest| rest.split_once('/'))
+        .map(|(job, _)| job)
+        .filter(|job| !job.is_empty())
+        .ok_or_else(|| invalid(field, "workers may only access keys under jobs/<job>/"))?;
+    let writing = access == Access::Write;
+    if caller.role == Role::Admin && !writing {
+        return Ok(());
+    }
+    if scheduler::worker_may_access(shared, caller, job_id, key, writing).await? {
+        Ok(())
+    } else {
+        Err(Status::permission_denied(format!(
+            "{field}: {key:?} is outside the tasks your workers hold leases on"
+        )))
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Access {
+    Read,
+    List,
+    Write,
 }
 
 #[tonic::async_trait]
@@ -31,7 +64,7 @@ impl ArtifactService for ArtifactApi {
         &self,
         request: Request<Streaming<pb::PutObjectChunk>>,
     ) -> Result<Response<pb::Artifact>, Status> {
-        require(&request, WORKER_ROLES)?;
+        let caller = require(&request, WORKER_ROLES)?;
         let mut stream = request.into_inner();
         let header = match stream.next().await {
             Some(Ok(pb::PutObjectChunk {
@@ -40,7 +73,14 @@ impl ArtifactService for ArtifactApi {
             Some(Err(status)) => return Err(status),
             _ => return Err(invalid("header", "the first message must be the header")),
         };
-        check_job_key("header.key", &header.key)?;
+        check_worker_key(
+            &self.shared,
+            &caller,
+            "header.key",
+            &header.key,
+            Access::Write,
+        )
+        .await?;
         check_sha256("header.sha256", &header.sha256)?;
         let limit = self.shared.config.limits.max_object_bytes;
         if header.size > limit {
@@ -70,9 +110,9 @@ impl ArtifactService for ArtifactApi {
         &self,
         request: Request<pb::GetObjectRequest>,
     ) -> Result<Response<Self::GetObjectStream>, Status> {
-        require(&request, WORKER_ROLES)?;
+        let caller = require(&request, WORKER_ROLES)?;
         let req = request.into_inner();
-        check_job_key("key", &req.key)?;
+        check_worker_key(&self.shared, &caller, "key", &req.key, Access::Read).await?;
         let stream = self.shared.storage.get_stream(&req.key, req.offset).await?;
         Ok(Response::new(Box::pin(stream)))
     }
@@ -81,9 +121,9 @@ impl ArtifactService for ArtifactApi {
         &self,
         request: Request<pb::ListObjectsRequest>,
     ) -> Result<Response<pb::ListObjectsResponse>, Status> {
-        require(&request, WORKER_ROLES)?;
+        let caller = require(&request, WORKER_ROLES)?;
         let req = request.into_inner();
-        check_job_key("prefix", &req.prefix)?;
+        check_worker_key(&self.shared, &caller, "prefix", &req.prefix, Access::List).await?;
         let objects = self
             .shared
             .storage

@@ -6,9 +6,9 @@ use crate::errors::{internal, invalid, invalid_all, Violation};
 use crate::events::read_after;
 use crate::inputs::{receive_upload, resolve_input, InputKind};
 use crate::jobs::{self, NewJob};
-use crate::model::{job_state, job_state_from_pb};
+use crate::model::{job_state, job_state_from_pb, now_ms};
 use crate::state::Shared;
-use crate::storage::check_key;
+use crate::storage::{check_key, check_prefix};
 use futures::FutureExt;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -54,6 +54,9 @@ fn json_object(
     }
 }
 
+/// The camera paths workers render (the engine's `PathKind::NAMES`).
+pub const CAMERA_PATH_KINDS: [&str; 4] = ["interpolate", "train", "orbit", "spiral"];
+
 /// Validates a render specification and returns its part of the task configuration.
 fn render_spec(
     shared: &Shared,
@@ -64,10 +67,14 @@ fn render_spec(
 ) -> serde_json::Map<String, serde_json::Value> {
     let mut extra = serde_json::Map::new();
     if let Some(path) = camera_path {
-        if path.kind.len() > 64 {
+        if !(path.kind.is_empty() || CAMERA_PATH_KINDS.contains(&path.kind.as_str())) {
             violations.push(Violation::new(
                 "camera_path.kind",
-                "longer than 64 characters",
+                format!(
+                    "unknown kind {:?} (one of {}, or empty for the preset's path)",
+                    path.kind,
+                    CAMERA_PATH_KINDS.join(", ")
+                ),
             ));
         }
         let max = shared.config.limits.max_render_frames;
@@ -124,6 +131,30 @@ fn render_spec(
     extra
 }
 
+/// Whether a CUDA worker has been heard from within the worker timeout.
+async fn cuda_worker_live(shared: &Shared) -> Result<bool, Status> {
+    let since = now_ms() - shared.config.worker_timeout.as_millis() as i64;
+    let live: i64 = sqlx::query_scalar(
+        "SELECT COUNT(*) FROM workers WHERE device LIKE 'cuda%' AND last_seen_at >= ?",
+    )
+    .bind(since)
+    .fetch_one(&shared.db.read)
+    .await
+    .map_err(internal)?;
+    Ok(live > 0)
+}
+
+/// Text that other people's terminals and pages show must not carry control characters
+/// (escape sequences, carriage returns, NUL).
+fn no_control_characters(field: &str, value: &str, violations: &mut Vec<Violation>) {
+    if value.chars().any(char::is_control) {
+        violations.push(Violation::new(
+            field,
+            "control characters (escape, carriage return, NUL, …) are not allowed",
+        ));
+    }
+}
+
 impl JobApi {
     async fn create(
         &self,
@@ -138,6 +169,8 @@ impl JobApi {
         if req.idempotency_key.len() > 200 {
             violations.push(Violation::new("idempotency_key", "longer than 200 bytes"));
         }
+        no_control_characters("name", &req.name, &mut violations);
+        no_control_characters("idempotency_key", &req.idempotency_key, &mut violations);
         let preset = if req.preset.is_empty() {
             "quick".to_string()
         } else {
@@ -169,6 +202,19 @@ impl JobApi {
             &req.config_overrides_json,
             &mut violations,
         );
+        if let Some(check) = shared
+            .config
+            .settings_check
+            .as_ref()
+            .filter(|_| shared.config.presets.contains(&preset))
+        {
+            for (key, reason) in (check.0)(&preset, &overrides) {
+                violations.push(Violation::new(
+                    format!("config_overrides_json.{key}"),
+                    reason,
+                ));
+            }
+        }
         let requirements = req.requirements.clone().unwrap_or_default();
         for (i, label) in requirements.labels.iter().enumerate() {
             if label.is_empty() || label.len() > 100 {
@@ -177,6 +223,7 @@ impl JobApi {
                     "must be 1-100 characters",
                 ));
             }
+            no_control_characters(&format!("requirements.labels[{i}]"), label, &mut violations);
         }
         let render = render_spec(
             shared,
@@ -234,6 +281,12 @@ impl JobApi {
             shared.storage.copy(source, &key).await.map_err(internal)?;
             style_keys.push(key);
         }
+        let note = if requirements.require_cuda && !cuda_worker_live(shared).await? {
+            "job accepted; it requires CUDA and no CUDA worker is connected: it waits until one \
+             registers"
+        } else {
+            "job accepted"
+        };
         let new_job = NewJob {
             id: job_id.clone(),
             owner: caller.name.clone(),
@@ -245,6 +298,7 @@ impl JobApi {
             style_keys,
             idempotency_key: idempotency_key.clone(),
             render,
+            note: note.to_string(),
         };
         let max_attempts = shared.config.max_attempts;
         let new_job = Arc::new(new_job);
@@ -486,6 +540,14 @@ impl JobService for JobApi {
     ) -> Result<Response<pb::Job>, Status> {
         let caller = require(&request, CLIENT_ROLES)?;
         let req = request.into_inner();
+        let mut violations = Vec::new();
+        no_control_characters("reason", &req.reason, &mut violations);
+        if req.reason.chars().count() > 1000 {
+            violations.push(Violation::new("reason", "longer than 1000 characters"));
+        }
+        if !violations.is_empty() {
+            return Err(invalid_all(violations));
+        }
         jobs::cancel_job(&self.shared, &caller, &req.job_id, &req.reason).await?;
         tracing::info!(job = %req.job_id, by = %caller.name, "job cancelled");
         let job = jobs::get_job(&self.shared, &caller, &req.job_id).await?;
@@ -501,7 +563,7 @@ impl JobService for JobApi {
         jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
         let prefix = format!("jobs/{}/{}", req.job_id, req.prefix);
         if !req.prefix.is_empty() {
-            check_key("prefix", &req.prefix)?;
+            check_prefix("prefix", &req.prefix)?;
         }
         let known: std::collections::HashMap<String, String> =
             jobs::load_artifacts(&self.shared.db.read, &req.job_id)

@@ -25,6 +25,27 @@ fn check_ids(worker_id: &str, task_id: u64) -> Result<(), Status> {
     Ok(())
 }
 
+/// Most metrics in a heartbeat's progress or a completion.
+const MAX_METRICS: usize = 64;
+/// Longest progress message, metric name or failure reason kept (characters).
+const MAX_TEXT: usize = 1000;
+
+/// Bounds what a worker may store with each heartbeat or completion: progress is kept on the
+/// task row and in events that every watcher replays.
+#[allow(clippy::result_large_err)]
+fn check_metrics(
+    field: &str,
+    metrics: &std::collections::HashMap<String, f64>,
+) -> Result<(), Status> {
+    if metrics.len() > MAX_METRICS {
+        return Err(invalid(field, format!("more than {MAX_METRICS} metrics")));
+    }
+    if metrics.keys().any(|k| k.chars().count() > 64) {
+        return Err(invalid(field, "metric names are at most 64 characters"));
+    }
+    Ok(())
+}
+
 #[tonic::async_trait]
 impl WorkerService for WorkerApi {
     async fn register_worker(
@@ -48,11 +69,12 @@ impl WorkerService for WorkerApi {
         &self,
         request: Request<pb::LeaseTaskRequest>,
     ) -> Result<Response<pb::LeaseTaskResponse>, Status> {
-        require(&request, WORKER_ROLES)?;
+        let caller = require(&request, WORKER_ROLES)?;
         let req = request.into_inner();
         if req.worker_id.is_empty() {
             return Err(invalid("worker_id", "missing"));
         }
+        scheduler::check_worker_owner(&self.shared, &caller, &req.worker_id).await?;
         let max_wait = self.shared.config.max_lease_wait;
         let wait = match req.wait_ms {
             0 => max_wait,
@@ -84,9 +106,19 @@ impl WorkerService for WorkerApi {
         &self,
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
-        require(&request, WORKER_ROLES)?;
+        let caller = require(&request, WORKER_ROLES)?;
         let req = request.into_inner();
         check_ids(&req.worker_id, req.task_id)?;
+        scheduler::check_worker_owner(&self.shared, &caller, &req.worker_id).await?;
+        if let Some(progress) = &req.progress {
+            check_metrics("progress.metrics", &progress.metrics)?;
+            if progress.message.chars().count() > MAX_TEXT {
+                return Err(invalid(
+                    "progress.message",
+                    format!("longer than {MAX_TEXT} characters"),
+                ));
+            }
+        }
         let (cancel, lease_expires_at_ms) = scheduler::heartbeat(&self.shared, &req).await?;
         Ok(Response::new(pb::HeartbeatResponse {
             cancel,
@@ -98,9 +130,11 @@ impl WorkerService for WorkerApi {
         &self,
         request: Request<pb::CompleteTaskRequest>,
     ) -> Result<Response<pb::CompleteTaskResponse>, Status> {
-        require(&request, WORKER_ROLES)?;
+        let caller = require(&request, WORKER_ROLES)?;
         let req = request.into_inner();
         check_ids(&req.worker_id, req.task_id)?;
+        scheduler::check_worker_owner(&self.shared, &caller, &req.worker_id).await?;
+        check_metrics("metrics", &req.metrics)?;
         scheduler::complete(&self.shared, &req).await?;
         tracing::debug!(worker = %req.worker_id, task = req.task_id, "task completed");
         Ok(Response::new(pb::CompleteTaskResponse {}))
@@ -110,9 +144,15 @@ impl WorkerService for WorkerApi {
         &self,
         request: Request<pb::FailTaskRequest>,
     ) -> Result<Response<pb::FailTaskResponse>, Status> {
-        require(&request, WORKER_ROLES)?;
-        let req = request.into_inner();
+        let caller = require(&request, WORKER_ROLES)?;
+        let mut req = request.into_inner();
         check_ids(&req.worker_id, req.task_id)?;
+        scheduler::check_worker_owner(&self.shared, &caller, &req.worker_id).await?;
+        // A failure is recorded whatever its length: a long reason is cut, not refused.
+        if let Some((cut, _)) = req.reason.char_indices().nth(MAX_TEXT) {
+            req.reason.truncate(cut);
+            req.reason.push('…');
+        }
         let requeued = scheduler::fail(&self.shared, &req).await?;
         tracing::info!(worker = %req.worker_id, task = req.task_id, requeued, reason = %req.reason, "task failed");
         Ok(Response::new(pb::FailTaskResponse { requeued }))

@@ -241,7 +241,19 @@ async fn tasks_go_only_to_capable_workers() {
         labels: vec![],
         memory_bytes: 8 << 30,
     });
-    client.create_job(request).await.unwrap();
+    let created = client.create_job(request).await.unwrap().into_inner();
+    // Nobody can run it yet: the submitter is told so.
+    let mut events = client
+        .watch_job(pb::WatchJobRequest {
+            job_id: created.job.unwrap().id,
+            after_seq: 0,
+            skip_progress: true,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let first = events.message().await.unwrap().unwrap();
+    assert!(first.message.contains("no CUDA worker"), "{first:?}");
     let mut cpu = FakeWorker::register(&server, "cpu", 0).await;
     assert!(
         cpu.lease(100).await.is_none(),
@@ -266,4 +278,62 @@ async fn tasks_go_only_to_capable_workers() {
         tonic_health::pb::health_check_response::ServingStatus::Serving
     );
     server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn a_job_that_failed_in_its_final_render_renders_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let mut request = job_request(&mut client).await;
+    request.camera_path = Some(pb::CameraPath {
+        kind: "zoom".into(),
+        ..Default::default()
+    });
+    let unknown = client.create_job(request.clone()).await.unwrap_err();
+    assert_eq!(bad_fields(&unknown), ["camera_path.kind"]);
+    request.camera_path = None;
+    let job = client
+        .create_job(request)
+        .await
+        .unwrap()
+        .into_inner()
+        .job
+        .unwrap();
+    let mut worker = FakeWorker::register(&server, "cpu", 0).await;
+    for _ in 0..4 {
+        worker.run_one().await;
+    }
+    let render = worker.lease(5000).await.expect("render_stylized");
+    worker
+        .workers
+        .fail_task(pb::FailTaskRequest {
+            worker_id: worker.id.clone(),
+            task_id: render.task_id,
+            fencing_token: render.fencing_token,
+            reason: "out of disk".into(),
+            retryable: false,
+        })
+        .await
+        .unwrap();
+    assert_eq!(
+        get_job(&mut client, &job.id).await.state(),
+        pb::JobState::Failed
+    );
+
+    client
+        .render_job(pb::RenderJobRequest {
+            job_id: job.id.clone(),
+            ..Default::default()
+        })
+        .await
+        .expect("the trained job renders again");
+    let again = get_job(&mut client, &job.id).await;
+    assert_eq!(again.state(), pb::JobState::Running);
+    assert!(again.error.is_empty(), "{}", again.error);
+    worker.run_one().await;
+    assert_eq!(
+        get_job(&mut client, &job.id).await.state(),
+        pb::JobState::Succeeded
+    );
 }

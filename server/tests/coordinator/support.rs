@@ -19,6 +19,8 @@ use tonic::{Request, Status};
 pub const ALICE: &str = "client-alice-0123456789";
 pub const BOB: &str = "client-bob-0123456789ab";
 pub const WORKER: &str = "worker-token-0123456789";
+/// A second worker principal (another pool, or an intruder with a worker token).
+pub const OTHER_WORKER: &str = "worker-token-b-0123456789";
 pub const ADMIN: &str = "admin-token-0123456789a";
 
 fn tokens() -> AuthConfig {
@@ -31,6 +33,7 @@ fn tokens() -> AuthConfig {
         entry(Role::Client, "alice", ALICE),
         entry(Role::Client, "bob", BOB),
         entry(Role::Worker, "worker", WORKER),
+        entry(Role::Worker, "other-worker", OTHER_WORKER),
         entry(Role::Admin, "root", ADMIN),
     ])
 }
@@ -230,7 +233,17 @@ pub struct FakeWorker {
 
 impl FakeWorker {
     pub async fn register(handle: &CoordinatorHandle, device: &str, memory_bytes: u64) -> Self {
-        let mut workers = worker_client(handle, Some(WORKER)).await;
+        Self::register_as(handle, WORKER, device, memory_bytes).await
+    }
+
+    /// Registers with the given worker token.
+    pub async fn register_as(
+        handle: &CoordinatorHandle,
+        token: &str,
+        device: &str,
+        memory_bytes: u64,
+    ) -> Self {
+        let mut workers = worker_client(handle, Some(token)).await;
         let id = workers
             .register_worker(pb::RegisterWorkerRequest {
                 name: "fake".into(),
@@ -246,7 +259,7 @@ impl FakeWorker {
             .expect("registers")
             .into_inner()
             .worker_id;
-        let artifacts = artifact_client(handle, Some(WORKER)).await;
+        let artifacts = artifact_client(handle, Some(token)).await;
         FakeWorker {
             id,
             workers,

@@ -21,6 +21,8 @@ use tokio::task::JoinHandle;
 
 pub const CLIENT: &str = "client-token-0123456789";
 pub const WORKER: &str = "worker-token-0123456789";
+/// The tests look into the store as an operator: workers reach only the jobs they hold.
+pub const ADMIN: &str = "admin-token-0123456789a";
 
 pub fn init_logs() {
     let _ = tracing_subscriber::fmt()
@@ -44,6 +46,7 @@ pub async fn coordinator(dir: &Path) -> CoordinatorHandle {
     config.auth = AuthConfig::Tokens(vec![
         entry(Role::Client, "alice", CLIENT),
         entry(Role::Worker, "workers", WORKER),
+        entry(Role::Admin, "operator", ADMIN),
     ]);
     config.heartbeat_interval = Duration::from_millis(200);
     config.lease_ttl = Duration::from_secs(10);
@@ -71,7 +74,7 @@ pub async fn jobs(handle: &CoordinatorHandle) -> JobServiceClient<Authed> {
 }
 
 pub async fn artifacts(handle: &CoordinatorHandle) -> ArtifactServiceClient<Authed> {
-    ArtifactServiceClient::with_interceptor(channel(handle).await, bearer(WORKER))
+    ArtifactServiceClient::with_interceptor(channel(handle).await, bearer(ADMIN))
 }
 
 fn sha256(data: &[u8]) -> String {
