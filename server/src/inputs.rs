@@ -52,8 +52,7 @@ async fn validate_file(
     tokio::task::spawn_blocking(move || match kind {
         InputKind::Dataset => {
             let file = std::fs::File::open(&path).map_err(|e| e.to_string())?;
-            validate_dataset_archive(std::io::BufReader::new(file), &limits)
-                .map(|summary| (summary.to_string(), "tar"))
+            validate_dataset_archive(file, &limits).map(|summary| (summary.to_string(), "tar"))
         }
         InputKind::Style => {
             let bytes = std::fs::read(&path).map_err(|e| e.to_string())?;

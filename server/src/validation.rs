@@ -38,7 +38,7 @@ const IMAGE_EXTENSIONS: [&str; 7] = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG",
 /// Largest scene file read into memory.
 const MAX_SCENE_FILE_BYTES: u64 = 64 << 20;
 
-/// Checks a dataset tar archive read from `reader`.
+/// Checks a dataset tar archive read from `reader` (buffered here).
 pub fn validate_dataset_archive(
     reader: impl Read,
     limits: &Limits,

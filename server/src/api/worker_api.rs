@@ -27,7 +27,7 @@ fn check_ids(worker_id: &str, task_id: u64) -> Result<(), Status> {
 
 /// Most metrics in a heartbeat's progress or a completion.
 const MAX_METRICS: usize = 64;
-/// Longest progress message, metric name or failure reason kept (characters).
+/// Longest progress message or failure reason kept (characters).
 const MAX_TEXT: usize = 1000;
 
 /// Bounds what a worker may store with each heartbeat or completion: progress is kept on the
