@@ -70,6 +70,7 @@ impl Coordinator {
             shutdown: stop_rx.clone(),
             next_expiry_check: AtomicI64::new(0),
             validations: Semaphore::new(crate::inputs::CONCURRENT_VALIDATIONS),
+            worker_owners: Default::default(),
         });
 
         let auth = Authenticator::new(&config.auth);
@@ -134,9 +135,10 @@ impl Coordinator {
                 None
             }
         };
+        let metrics = metrics_addr.map_or("off".to_string(), |a| format!("http://{a}/metrics"));
         tracing::info!(
             %local_addr,
-            metrics = ?metrics_addr,
+            %metrics,
             database = %config.database.display(),
             storage = %shared.storage.url(),
             backend = %shared.storage.backend(),

@@ -74,6 +74,11 @@ pub async fn register_worker(
             "worker id {id:?} is registered with other credentials"
         )));
     }
+    shared
+        .worker_owners
+        .lock()
+        .expect("worker owners")
+        .insert(id.clone(), owner.to_string());
     Ok(id)
 }
 
@@ -84,11 +89,31 @@ pub async fn check_worker_owner(
     caller: &Principal,
     worker_id: &str,
 ) -> Result<(), Status> {
-    let owner: Option<String> = sqlx::query_scalar("SELECT owner FROM workers WHERE id = ?")
-        .bind(worker_id)
-        .fetch_optional(&shared.db.read)
-        .await
-        .map_err(internal)?;
+    let cached = shared
+        .worker_owners
+        .lock()
+        .expect("worker owners")
+        .get(worker_id)
+        .cloned();
+    let owner = match cached {
+        Some(owner) => Some(owner),
+        None => {
+            let stored: Option<String> =
+                sqlx::query_scalar("SELECT owner FROM workers WHERE id = ?")
+                    .bind(worker_id)
+                    .fetch_optional(&shared.db.read)
+                    .await
+                    .map_err(internal)?;
+            if let Some(owner) = &stored {
+                shared
+                    .worker_owners
+                    .lock()
+                    .expect("worker owners")
+                    .insert(worker_id.to_string(), owner.clone());
+            }
+            stored
+        }
+    };
     match owner {
         None => Err(Status::not_found(format!(
             "worker {worker_id:?} is not registered (call RegisterWorker)"

@@ -8,7 +8,9 @@ use crate::db::Db;
 use crate::events::EventBatch;
 use crate::storage::Storage;
 use crate::writer::Writer;
+use std::collections::HashMap;
 use std::sync::atomic::AtomicI64;
+use std::sync::Mutex;
 use stylenerf_proto::v1 as pb;
 use tokio::sync::{broadcast, watch, Notify, Semaphore};
 
@@ -28,6 +30,9 @@ pub struct Shared {
     pub next_expiry_check: AtomicI64,
     /// Bounds how many inputs are validated at once (decoding an image takes memory).
     pub validations: Semaphore,
+    /// Worker id → the principal that registered it. An id's owner never changes, so this
+    /// cache of `workers.owner` spares every heartbeat a database read.
+    pub worker_owners: Mutex<HashMap<String, String>>,
 }
 
 impl Shared {

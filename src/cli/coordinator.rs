@@ -17,16 +17,11 @@ pub fn run(command: CoordinatorCommand) -> anyhow::Result<()> {
         .enable_all()
         .build()?;
     runtime.block_on(async move {
+        // Start-up and shutdown are logged by the coordinator itself (in the log format asked
+        // for: with `--log-format json`, stderr holds JSON lines only).
         let coordinator = Coordinator::start(config).await?;
-        eprintln!(
-            "coordinator listening on {} (metrics: {})",
-            coordinator.endpoint(),
-            coordinator
-                .metrics_addr()
-                .map_or("off".to_string(), |a| format!("http://{a}/metrics"))
-        );
         shutdown_signal().await;
-        eprintln!("shutting down");
+        tracing::info!("signal received: shutting down");
         coordinator.shutdown().await
     })
 }

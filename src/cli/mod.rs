@@ -1,6 +1,7 @@
 //! Command-line interface: the top-level command tree and the options every command shares.
 
 use clap::{Args, Parser, Subcommand};
+use stylenerf_worker::logging::LogFormat;
 
 mod bench_chaos;
 mod bench_coordinator;
@@ -39,12 +40,6 @@ pub struct GlobalArgs {
     /// Log format.
     #[arg(long, global = true, value_enum, default_value_t = LogFormat::Pretty)]
     pub log_format: LogFormat,
-}
-
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum LogFormat {
-    Pretty,
-    Json,
 }
 
 #[derive(Debug, Subcommand)]
@@ -109,15 +104,7 @@ pub fn quiet_default_logs(cli: &mut Cli) {
 }
 
 pub fn init_tracing(global: &GlobalArgs) {
-    let filter = tracing_subscriber::EnvFilter::try_new(&global.log)
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr);
-    match global.log_format {
-        LogFormat::Pretty => builder.init(),
-        LogFormat::Json => builder.json().init(),
-    }
+    stylenerf_worker::logging::init(&global.log, global.log_format);
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {

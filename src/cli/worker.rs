@@ -18,9 +18,12 @@ pub fn run(command: WorkerCommand) -> anyhow::Result<()> {
     let summary = runtime.block_on(stylenerf_worker::run_until_signal(
         command.args.into_config(),
     ))?;
-    eprintln!(
-        "worker stopped: {} completed, {} failed, {} cancelled, {} released",
-        summary.completed, summary.failed, summary.cancelled, summary.released
+    tracing::info!(
+        completed = summary.completed,
+        failed = summary.failed,
+        cancelled = summary.cancelled,
+        released = summary.released,
+        "worker stopped"
     );
     Ok(())
 }

@@ -79,10 +79,9 @@ impl Clients {
             }
             ep = ep.tls_config(tls).context("TLS configuration")?;
         }
-        let channel = ep
-            .connect()
-            .await
-            .with_context(|| format!("connecting to the coordinator at {endpoint}"))?;
+        // Connected on first use and reconnected after a drop: a worker may start before its
+        // coordinator (the calls then wait, see `retry::patient`).
+        let channel = ep.connect_lazy();
         let bearer = Bearer::new(token)?;
         Ok(Self {
             workers: WorkerServiceClient::with_interceptor(channel.clone(), bearer.clone())

@@ -20,6 +20,7 @@ pub mod archive;
 pub mod config;
 pub mod connection;
 pub mod error;
+pub mod logging;
 pub mod progress;
 pub mod retry;
 pub mod scratch;

@@ -1,6 +1,7 @@
 //! `stylenerf-worker`: a standalone worker process (the same as `stylenerf worker`).
 
 use clap::Parser;
+use stylenerf_worker::logging::{self, LogFormat};
 use stylenerf_worker::WorkerArgs;
 
 /// Leases StylizedNeRF stage tasks from a coordinator and runs them.
@@ -12,19 +13,23 @@ struct Cli {
     /// Log filter (tracing `EnvFilter` syntax), e.g. `info` or `stylenerf_worker=debug`.
     #[arg(long, env = "STYLENERF_LOG", default_value = "info")]
     log: String,
+    /// Log format.
+    #[arg(long, value_enum, default_value_t = LogFormat::Pretty)]
+    log_format: LogFormat,
 }
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     stylenerf_engine::malloc::keep_freed_memory();
     let cli = Cli::parse();
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_new(&cli.log)
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
-    stylenerf_worker::run_until_signal(cli.worker.into_config()).await?;
+    logging::init(&cli.log, cli.log_format);
+    let summary = stylenerf_worker::run_until_signal(cli.worker.into_config()).await?;
+    tracing::info!(
+        completed = summary.completed,
+        failed = summary.failed,
+        cancelled = summary.cancelled,
+        released = summary.released,
+        "worker stopped"
+    );
     Ok(())
 }

@@ -3,7 +3,8 @@
 //! its completion reported: transient failures (the coordinator unreachable or overloaded)
 //! are retried with jittered exponential backoff for about a minute — a lease outlives an
 //! outage shorter than its TTL — while answers that retrying cannot change (a stale lease,
-//! a refused request) come back at once.
+//! a refused request) come back at once. Registering and leasing wait without a deadline
+//! ([`patient`]): a worker started before its coordinator waits for it.
 
 use std::future::Future;
 use std::time::Duration;
@@ -18,6 +19,17 @@ fn policy() -> ExponentialBuilder {
         .with_min_delay(Duration::from_millis(250))
         .with_max_delay(Duration::from_secs(8))
         .with_max_times(10)
+        .with_jitter()
+}
+
+/// The backoff while waiting for the coordinator without a deadline (registering at start-up,
+/// the lease loop): 0.5 s doubling to 30 s, jittered so that a fleet of workers does not knock
+/// in step, never giving up.
+pub fn patient() -> ExponentialBuilder {
+    ExponentialBuilder::default()
+        .with_min_delay(Duration::from_millis(500))
+        .with_max_delay(Duration::from_secs(30))
+        .without_max_times()
         .with_jitter()
 }
 

@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
+use backon::{BackoffBuilder, Retryable};
 use stylenerf_engine::device::{device_name, parse_device};
 use stylenerf_proto::v1 as pb;
 use tokio::sync::{broadcast, watch};
@@ -14,6 +15,7 @@ use tokio::task::JoinSet;
 
 use crate::config::WorkerConfig;
 use crate::connection::Clients;
+use crate::retry;
 use crate::scratch::ScratchDir;
 use crate::task::{start_task, RunSettings, StopReason, TaskResult, TaskStop};
 
@@ -123,18 +125,30 @@ impl Worker {
     }
 
     /// Registers (again) under `id` (or a new id) and points the scratch folder at it.
+    /// Waits (jittered backoff, no deadline) while the coordinator cannot be reached; a refusal
+    /// (a bad token, an id registered by others) is an error at once.
     async fn register_again(&mut self, id: Option<String>) -> anyhow::Result<()> {
-        let reply = self
-            .clients
-            .workers
-            .register_worker(pb::RegisterWorkerRequest {
-                name: self.config.name.clone(),
-                capabilities: Some(self.capabilities.clone()),
-                worker_id: id.unwrap_or_default(),
-            })
-            .await
-            .with_context(|| format!("registering with {}", self.config.endpoint))?
-            .into_inner();
+        let request = pb::RegisterWorkerRequest {
+            name: self.config.name.clone(),
+            capabilities: Some(self.capabilities.clone()),
+            worker_id: id.unwrap_or_default(),
+        };
+        let endpoint = self.config.endpoint.clone();
+        let workers = self.clients.workers.clone();
+        let reply = (|| {
+            let mut workers = workers.clone();
+            let request = request.clone();
+            async move { workers.register_worker(request).await }
+        })
+        .retry(retry::patient())
+        .when(retry::is_transient)
+        .notify(|status, delay| {
+            tracing::warn!(%endpoint, error = status.message(), retry_in = ?delay,
+                "the coordinator is not reachable yet; waiting");
+        })
+        .await
+        .with_context(|| format!("registering with {}", self.config.endpoint))?
+        .into_inner();
         let settings = Arc::make_mut(&mut self.settings);
         settings.worker_id = reply.worker_id.clone();
         let root = self
@@ -177,7 +191,8 @@ impl Worker {
         let mut stops: HashMap<u64, Arc<TaskStop>> = HashMap::new();
         let mut reserved: HashMap<u64, u64> = HashMap::new();
         let mut summary = RunSummary::default();
-        let mut backoff = Duration::from_millis(500);
+        // Waits after failed LeaseTask calls: jittered, growing, reset by a success.
+        let mut delays = retry::patient().build();
         let budget = self.config.memory_bytes;
         let max_tasks = self.config.max_tasks.max(1);
         while !*shutdown.borrow() {
@@ -205,7 +220,7 @@ impl Worker {
                 }
                 reply = lease => match reply {
                     Ok(reply) => {
-                        backoff = Duration::from_millis(500);
+                        delays = retry::patient().build();
                         let Some(task) = reply.into_inner().task else { continue };
                         if budget > 0 && task.memory_bytes > free {
                             // The coordinator checks this too; never run what does not fit.
@@ -233,17 +248,18 @@ impl Worker {
                     Err(s) if s.code() == tonic::Code::NotFound => {
                         tracing::warn!("the coordinator does not know this worker; registering again");
                         if let Err(e) = self.register_again(Some(self.settings.worker_id.clone())).await {
-                            tracing::warn!(error = %e, "registering failed");
+                            let backoff = delays.next().unwrap_or(Duration::from_secs(30));
+                            tracing::warn!(error = %e, retry_in = ?backoff, "registering failed");
                             tokio::time::sleep(backoff).await;
                         }
                     }
                     Err(s) => {
+                        let backoff = delays.next().unwrap_or(Duration::from_secs(30));
                         tracing::warn!(error = %s, retry_in = ?backoff, "LeaseTask failed");
                         tokio::select! {
                             _ = tokio::time::sleep(backoff) => {}
                             _ = shutdown.changed() => break,
                         }
-                        backoff = (backoff * 2).min(Duration::from_secs(30));
                     }
                 },
             }

@@ -7,7 +7,7 @@ mod support;
 use std::time::{Duration, Instant};
 
 use stylenerf_server::proto::v1 as pb;
-use stylenerf_worker::{TaskResult, WorkerEvent};
+use stylenerf_worker::{TaskResult, Worker, WorkerEvent};
 use support::*;
 
 fn finished(event: &WorkerEvent) -> Option<(pb::Stage, TaskResult)> {
@@ -188,6 +188,31 @@ async fn a_truncated_newest_checkpoint_costs_one_interval_not_the_job() {
     let (_, result) = second.wait_for(Duration::from_secs(120), finished).await;
     assert!(matches!(result, TaskResult::Completed { .. }), "{result:?}");
     second.stop().await;
+    coordinator.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_started_before_its_coordinator_waits_for_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let listen = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let endpoint = format!("http://{listen}");
+    let registering = tokio::spawn(Worker::register(worker_config_for(&endpoint, dir.path())));
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(
+        !registering.is_finished(),
+        "the worker waits instead of exiting"
+    );
+    let coordinator = coordinator_on(dir.path(), listen).await;
+    let worker = tokio::time::timeout(Duration::from_secs(30), registering)
+        .await
+        .expect("registers once the coordinator is up")
+        .unwrap()
+        .expect("registers");
+    assert!(worker.id().starts_with("w-"), "{}", worker.id());
+    drop(worker);
     coordinator.shutdown().await.unwrap();
 }
 

@@ -36,8 +36,14 @@ pub fn init_logs() {
 
 /// A coordinator under `dir` with heartbeats every 200 ms.
 pub async fn coordinator(dir: &Path) -> CoordinatorHandle {
+    coordinator_on(dir, CoordinatorConfig::local(dir).listen).await
+}
+
+/// [`coordinator`] listening on `listen`.
+pub async fn coordinator_on(dir: &Path, listen: std::net::SocketAddr) -> CoordinatorHandle {
     init_logs();
     let mut config = CoordinatorConfig::local(dir);
+    config.listen = listen;
     let entry = |role, name: &str, token: &str| TokenEntry {
         role,
         name: name.into(),
@@ -192,7 +198,12 @@ pub async fn get_job(handle: &CoordinatorHandle, id: &str) -> pb::Job {
 
 /// A test worker: checkpoints every 10 steps, scratch under `dir`.
 pub fn worker_config(handle: &CoordinatorHandle, dir: &Path) -> WorkerConfig {
-    let mut c = WorkerConfig::new(handle.endpoint());
+    worker_config_for(&handle.endpoint(), dir)
+}
+
+/// [`worker_config`] for a coordinator at `endpoint` (which may not be up yet).
+pub fn worker_config_for(endpoint: &str, dir: &Path) -> WorkerConfig {
+    let mut c = WorkerConfig::new(endpoint);
     c.token = Some(WORKER.into());
     c.name = "test-worker".into();
     c.checkpoint_every_steps = 10;
