@@ -12,9 +12,6 @@ fn main() -> std::process::ExitCode {
     cli::init_tracing(&args.global);
     match cli::run(args) {
         Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(err) => {
-            eprintln!("error: {err:#}");
-            std::process::ExitCode::FAILURE
-        }
+        Err(err) => cli::report(&err),
     }
 }

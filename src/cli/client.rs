@@ -607,7 +607,21 @@ fn describe_event(event: &pb::Event) -> String {
     format!("#{} {} {what}{message}", event.seq, clock(event.at_ms))
 }
 
-/// `120/800 loss 0.0123 psnr 24.31 ETA 1m20s`.
+/// `value` with four significant digits (`24.31`, `0.003000`, `1235`), in scientific notation
+/// when it is tiny (`5.00e-5`): a learning rate must not show as `0.00`.
+fn significant(value: f64) -> String {
+    if value == 0.0 || !value.is_finite() {
+        return value.to_string();
+    }
+    let magnitude = value.abs().log10().floor() as i32;
+    if magnitude < -3 {
+        return format!("{value:.2e}");
+    }
+    let decimals = (3 - magnitude).clamp(0, 6) as usize;
+    format!("{value:.decimals$}")
+}
+
+/// `120/800 loss 0.0123 psnr 24.31 lr 0.005000 ETA 1m20s`.
 pub fn describe_progress(p: &pb::Progress) -> String {
     let mut parts = Vec::new();
     if p.total > 0 {
@@ -621,9 +635,9 @@ pub fn describe_progress(p: &pb::Progress) -> String {
     let mut metrics: Vec<_> = p.metrics.iter().collect();
     metrics.sort_by(|a, b| a.0.cmp(b.0));
     for (name, value) in metrics {
-        parts.push(format!("{name} {value:.2}"));
+        parts.push(format!("{name} {}", significant(*value)));
     }
-    if p.eta_seconds >= 0.0 && p.total > 0 && p.step < p.total {
+    if p.eta_seconds > 0.0 && p.total > 0 && p.step < p.total {
         parts.push(format!("ETA {}", duration(p.eta_seconds)));
     }
     if !p.message.is_empty() {
@@ -764,6 +778,22 @@ mod tests {
             .to_string();
         assert!(err.contains("prefix the setting with its stage"), "{err}");
         assert_eq!(duration(75.0), "1m15s");
+        let progress = pb::Progress {
+            step: 120,
+            total: 800,
+            metrics: [
+                ("psnr".to_string(), 24.3149),
+                ("lr".to_string(), 0.005),
+                ("tiny".to_string(), 0.00005),
+                ("rays".to_string(), 8192.0),
+            ]
+            .into(),
+            ..Default::default()
+        };
+        assert_eq!(
+            describe_progress(&progress),
+            "120/800 lr 0.005000 psnr 24.31 rays 8192 tiny 5.00e-5"
+        );
         assert_eq!(clock(3_723_000), "01:02:03");
     }
 

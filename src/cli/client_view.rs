@@ -17,7 +17,7 @@ pub struct WatchView {
 }
 
 fn bar_style() -> ProgressStyle {
-    ProgressStyle::with_template("{prefix:>16} [{bar:30}] {msg}")
+    ProgressStyle::with_template("{prefix:>16} [{bar:30}] {wide_msg}")
         .expect("valid template")
         .progress_chars("=> ")
 }

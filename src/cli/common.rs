@@ -56,7 +56,7 @@ pub fn engine_settings_check() -> stylenerf_server::SettingsCheck {
 pub fn stage_progress(stage: &str) -> (ProgressBar, StageControl) {
     let bar = ProgressBar::new(1);
     bar.set_style(
-        ProgressStyle::with_template("{prefix:>16} [{bar:30}] {pos}/{len} {msg} (ETA {eta})")
+        ProgressStyle::with_template("{prefix:>16} [{bar:30}] {pos}/{len} (ETA {eta}) {wide_msg}")
             .expect("valid template")
             .progress_chars("=> "),
     );

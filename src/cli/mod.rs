@@ -103,6 +103,39 @@ pub fn quiet_default_logs(cli: &mut Cli) {
     }
 }
 
+/// Reports a command's error on stderr and picks the exit status. Output cut short by its
+/// reader (`stylenerf events J | head`) is not an error. Each cause is printed once: a context
+/// that already quotes its source's message does not get it repeated.
+pub fn report(err: &anyhow::Error) -> std::process::ExitCode {
+    let broken_pipe = err.chain().any(|cause| {
+        cause
+            .downcast_ref::<std::io::Error>()
+            .is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe)
+    });
+    if broken_pipe {
+        return std::process::ExitCode::SUCCESS;
+    }
+    eprintln!("error: {}", describe(err));
+    std::process::ExitCode::FAILURE
+}
+
+/// The error and its causes joined by `: `, leaving out a cause whose message the text so far
+/// already ends with or contains.
+fn describe(err: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in err.chain() {
+        let message = cause.to_string();
+        if text.contains(&message) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&message);
+    }
+    text
+}
+
 pub fn init_tracing(global: &GlobalArgs) {
     stylenerf_worker::logging::init(&global.log, global.log_format);
 }
@@ -124,5 +157,30 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
         Command::Bench(BenchCommand::Chaos(args)) => bench_chaos::run(args),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use anyhow::Context;
+
+    #[test]
+    fn each_cause_is_said_once_and_a_closed_pipe_is_not_an_error() {
+        let missing = std::io::Error::new(
+            std::io::ErrorKind::NotFound,
+            "No such file or directory (os error 2)",
+        );
+        let err = Err::<(), _>(missing)
+            .context("No such file or directory (os error 2)")
+            .context("reading scene.tar")
+            .unwrap_err();
+        assert_eq!(
+            describe(&err),
+            "reading scene.tar: No such file or directory (os error 2)"
+        );
+        let pipe = std::io::Error::new(std::io::ErrorKind::BrokenPipe, "Broken pipe");
+        let err = Err::<(), _>(pipe).context("printing events").unwrap_err();
+        assert_eq!(report(&err), std::process::ExitCode::SUCCESS);
     }
 }
