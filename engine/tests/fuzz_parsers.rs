@@ -1,28 +1,16 @@
 //! Property tests of the engine's parsers of user data: whatever a `transforms.json`, an
 //! `.npy` file or a job's overrides hold, loading gives a value or an error naming the file
-//! or key — never a panic. Each property runs `PROPTEST_CASES` cases (64 unless set; the
-//! longer run in docs/BENCHMARKS.md sets 5000).
+//! or key — never a panic. Each property runs proptest's `PROPTEST_CASES` cases (256 unless
+//! set; the longer run in docs/BENCHMARKS.md sets 5000).
 
 use std::path::Path;
 
 use proptest::prelude::*;
-use proptest::test_runner::Config;
 use serde_json::{json, Value};
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::npy;
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::limits::check_job_overrides;
-
-fn config() -> Config {
-    Config {
-        cases: std::env::var("PROPTEST_CASES")
-            .ok()
-            .and_then(|c| c.parse().ok())
-            .unwrap_or(64),
-        failure_persistence: None,
-        ..Config::default()
-    }
-}
 
 /// Any JSON value, a few levels deep, with the numbers and strings that break parsers.
 fn any_json() -> impl Strategy<Value = Value> {
@@ -130,7 +118,7 @@ fn transforms_json_never_panics_the_loader() {
         max_side: Some(8),
         ..LoadOptions::default()
     };
-    proptest!(config(), |(mutations in prop::collection::vec((any_place(), any_json()), 1..4))| {
+    proptest!(|(mutations in prop::collection::vec((any_place(), any_json()), 1..4))| {
         let mut doc = original.clone();
         for ((frame, key), value) in mutations {
             mutate(&mut doc, frame, &key, value);
@@ -154,7 +142,7 @@ fn any_bytes_as_transforms_json_or_npy_give_an_error_not_a_panic() {
         npy::write_matrix(&npy_path, &matrix).unwrap();
         std::fs::read(&npy_path).unwrap()
     };
-    proptest!(config(), |(bytes in prop::collection::vec(any::<u8>(), 0..512),
+    proptest!(|(bytes in prop::collection::vec(any::<u8>(), 0..512),
                           flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 0..6),
                           cut in any::<prop::sample::Index>())| {
         std::fs::write(&path, &bytes).unwrap();
@@ -191,7 +179,7 @@ fn any_overrides_are_checked_without_panicking() {
         Just("nerf_pretrain"),
         Just("x.y.z"),
     ];
-    proptest!(config(), |(overrides in prop::collection::vec((keys, any_json()), 0..5),
+    proptest!(|(overrides in prop::collection::vec((keys, any_json()), 0..5),
                           preset in prop_oneof![Just("tiny"), Just("quick"), Just("paper"), Just("nope")])| {
         let map: serde_json::Map<String, Value> =
             overrides.into_iter().map(|(k, v)| (k.to_string(), v)).collect();

@@ -530,23 +530,10 @@ mod tests {
     }
 
     /// Whatever the bytes, validation answers with a summary or a printable reason, never a
-    /// panic. `PROPTEST_CASES` cases per property (64 unless set).
+    /// panic. proptest's `PROPTEST_CASES` cases per property (256 unless set).
     mod properties {
         use super::*;
         use proptest::prelude::*;
-        use proptest::test_runner::Config;
-
-        fn config() -> Config {
-            Config {
-                cases: std::env::var("PROPTEST_CASES")
-                    .ok()
-                    .and_then(|c| c.parse().ok())
-                    .unwrap_or(64),
-                failure_persistence: None,
-                ..Config::default()
-            }
-        }
-
         fn printable(reason: &str) -> bool {
             !reason.chars().any(char::is_control)
         }
@@ -561,8 +548,6 @@ mod tests {
         }
 
         proptest! {
-            #![proptest_config(config())]
-
             #[test]
             fn archives(bytes in prop::collection::vec(any::<u8>(), 0..2048),
                         flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 0..8),

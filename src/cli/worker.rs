@@ -15,15 +15,8 @@ pub fn run(command: WorkerCommand) -> anyhow::Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
-    let summary = runtime.block_on(stylenerf_worker::run_until_signal(
+    runtime.block_on(stylenerf_worker::run_until_signal(
         command.args.into_config(),
     ))?;
-    tracing::info!(
-        completed = summary.completed,
-        failed = summary.failed,
-        cancelled = summary.cancelled,
-        released = summary.released,
-        "worker stopped"
-    );
     Ok(())
 }

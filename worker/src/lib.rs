@@ -50,7 +50,15 @@ pub async fn run_until_signal(config: WorkerConfig) -> anyhow::Result<RunSummary
         tracing::warn!("second signal: exiting without releasing the leases");
         std::process::exit(130);
     });
-    worker.run().await
+    let summary = worker.run().await?;
+    tracing::info!(
+        completed = summary.completed,
+        failed = summary.failed,
+        cancelled = summary.cancelled,
+        released = summary.released,
+        "worker stopped"
+    );
+    Ok(summary)
 }
 
 async fn wait_for_signal() {

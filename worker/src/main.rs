@@ -23,13 +23,6 @@ async fn main() -> anyhow::Result<()> {
     stylenerf_engine::malloc::keep_freed_memory();
     let cli = Cli::parse();
     logging::init(&cli.log, cli.log_format);
-    let summary = stylenerf_worker::run_until_signal(cli.worker.into_config()).await?;
-    tracing::info!(
-        completed = summary.completed,
-        failed = summary.failed,
-        cancelled = summary.cancelled,
-        released = summary.released,
-        "worker stopped"
-    );
+    stylenerf_worker::run_until_signal(cli.worker.into_config()).await?;
     Ok(())
 }
