@@ -40,6 +40,9 @@ pub struct CoordinatorConfig {
     pub reaper_interval: Duration,
     /// A worker not heard from for this long no longer counts as live.
     pub worker_timeout: Duration,
+    /// On shutdown, health turns NOT_SERVING at once and calls are still served for this long,
+    /// so that load balancers and Kubernetes readiness probes stop sending new calls first.
+    pub drain_grace: Duration,
     /// Accepted preset names.
     pub presets: Vec<String>,
     pub limits: Limits,
@@ -136,6 +139,7 @@ impl CoordinatorConfig {
             max_attempts: 3,
             reaper_interval: Duration::from_secs(1),
             worker_timeout: Duration::from_secs(60),
+            drain_grace: Duration::ZERO,
             presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
             limits: Limits::default(),
             spool_dir: None,
@@ -197,6 +201,10 @@ pub struct CoordinatorArgs {
     /// Leases per task before its job fails [default: 3].
     #[arg(long, env = "STYLENERF_MAX_ATTEMPTS")]
     pub max_attempts: Option<u32>,
+    /// On SIGTERM, report NOT_SERVING and keep serving this many seconds before stopping, so
+    /// that readiness probes take the coordinator out of rotation first [default: 0].
+    #[arg(long, env = "STYLENERF_DRAIN_GRACE")]
+    pub drain_grace: Option<f64>,
     /// Accepted preset names, comma-separated [default: tiny,quick,standard,paper].
     #[arg(long, env = "STYLENERF_PRESETS", value_delimiter = ',')]
     pub presets: Option<Vec<String>>,
@@ -232,6 +240,7 @@ struct FileConfig {
     max_lease_wait: Option<f64>,
     progress_event_interval: Option<f64>,
     max_attempts: Option<u32>,
+    drain_grace: Option<f64>,
     presets: Option<Vec<String>>,
     max_dataset_mib: Option<u64>,
     max_style_mib: Option<u64>,
@@ -327,16 +336,27 @@ impl CoordinatorArgs {
             "max_lease_wait",
             config.max_lease_wait,
         )?;
-        config.progress_event_interval = match self
-            .progress_event_interval
-            .or(file.progress_event_interval)
-        {
-            None => config.progress_event_interval,
-            Some(s) if s.is_finite() && s >= 0.0 => Duration::from_secs_f64(s),
-            Some(s) => anyhow::bail!(
-                "progress_event_interval must be zero or a positive number of seconds, not {s}"
-            ),
-        };
+        let secs_or_zero =
+            |v: Option<f64>, name: &str, default: Duration| -> anyhow::Result<Duration> {
+                match v {
+                    None => Ok(default),
+                    Some(s) if s.is_finite() && s >= 0.0 => Ok(Duration::from_secs_f64(s)),
+                    Some(s) => anyhow::bail!(
+                        "{name} must be zero or a positive number of seconds, not {s}"
+                    ),
+                }
+            };
+        config.progress_event_interval = secs_or_zero(
+            self.progress_event_interval
+                .or(file.progress_event_interval),
+            "progress_event_interval",
+            config.progress_event_interval,
+        )?;
+        config.drain_grace = secs_or_zero(
+            self.drain_grace.or(file.drain_grace),
+            "drain_grace",
+            config.drain_grace,
+        )?;
         if let Some(n) = self.max_attempts.or(file.max_attempts) {
             anyhow::ensure!(n >= 1, "max_attempts must be at least 1");
             config.max_attempts = n;

@@ -21,6 +21,7 @@ use stylenerf_proto::v1::job_service_server::JobServiceServer;
 use stylenerf_proto::v1::worker_service_server::WorkerServiceServer;
 use tokio::sync::{broadcast, watch, Notify, Semaphore};
 use tokio::task::JoinHandle;
+use tonic::server::NamedService;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
@@ -33,6 +34,8 @@ pub struct Coordinator;
 
 /// A running coordinator.
 pub struct CoordinatorHandle {
+    /// Turned NOT_SERVING when the shutdown starts.
+    health: tonic_health::server::HealthReporter,
     local_addr: SocketAddr,
     metrics_addr: Option<SocketAddr>,
     tls: bool,
@@ -145,6 +148,7 @@ impl Coordinator {
             "coordinator listening"
         );
         Ok(CoordinatorHandle {
+            health,
             local_addr,
             metrics_addr,
             tls: config.tls.is_some(),
@@ -197,9 +201,25 @@ impl CoordinatorHandle {
         self.shared.storage.url()
     }
 
-    /// Stops accepting calls, ends long-polls and watch streams, waits up to five seconds for
-    /// calls in flight, and closes the database.
+    /// Reports NOT_SERVING on every health service and serves on for `drain_grace`; then stops
+    /// accepting calls, ends long-polls and watch streams, waits up to five seconds for calls
+    /// in flight, and closes the database.
     pub async fn shutdown(self) -> anyhow::Result<()> {
+        for service in [
+            "",
+            JobServiceServer::<JobApi>::NAME,
+            WorkerServiceServer::<WorkerApi>::NAME,
+            ArtifactServiceServer::<ArtifactApi>::NAME,
+        ] {
+            self.health
+                .set_service_status(service, tonic_health::ServingStatus::NotServing)
+                .await;
+        }
+        let grace = self.shared.config.drain_grace;
+        if !grace.is_zero() {
+            tracing::info!(?grace, "draining: health reports NOT_SERVING");
+            tokio::time::sleep(grace).await;
+        }
         let _ = self.stop.send(true);
         let mut server = self.server;
         match tokio::time::timeout(Duration::from_secs(5), &mut server).await {

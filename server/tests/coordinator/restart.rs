@@ -65,3 +65,36 @@ async fn restart_mid_job_loses_nothing() {
     assert_eq!(succeeded, 5, "every stage's completion is in the log");
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test]
+async fn health_reports_not_serving_while_draining() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::health_client::HealthClient;
+    use tonic_health::pb::HealthCheckRequest;
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = config(dir.path());
+    config.drain_grace = std::time::Duration::from_secs(2);
+    let server = start(config).await;
+    let mut health = HealthClient::new(channel(&server).await);
+    let status = |service: &str| HealthCheckRequest {
+        service: service.into(),
+    };
+    let check =
+        |reply: tonic::Response<tonic_health::pb::HealthCheckResponse>| reply.into_inner().status();
+    assert_eq!(
+        check(health.check(status("")).await.unwrap()),
+        ServingStatus::Serving
+    );
+    let stopping = tokio::spawn(server.shutdown());
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    for service in ["", "stylenerf.v1.JobService", "stylenerf.v1.WorkerService"] {
+        let reply = health
+            .check(status(service))
+            .await
+            .expect("still answering");
+        assert_eq!(check(reply), ServingStatus::NotServing, "{service:?}");
+    }
+    assert!(!stopping.is_finished(), "calls are served during the grace");
+    stopping.await.unwrap().unwrap();
+}
