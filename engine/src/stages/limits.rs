@@ -205,7 +205,13 @@ pub fn check_job_overrides(
             "mutual_learning" => {
                 stage_overrides(&MutualConfig::preset(preset), stage, overrides).map(drop)
             }
-            _ => stage_overrides(&RenderStylizedConfig::preset(preset), stage, overrides).map(drop),
+            "render_stylized" => {
+                stage_overrides(&RenderStylizedConfig::preset(preset), stage, overrides).map(drop)
+            }
+            other => Err(EngineError::config(
+                other,
+                "a stage without a configuration",
+            )),
         };
         let problem = match checked {
             Ok(()) => continue,
