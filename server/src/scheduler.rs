@@ -270,7 +270,8 @@ async fn lease_in(
     Ok(Ok((None, requeued)))
 }
 
-/// Marks a ready task leased by `worker_id` under a new fencing token.
+/// Marks a ready task leased by `worker_id` under a new fencing token. The previous attempt's
+/// progress is cleared: what the task shows from now on is this attempt's.
 async fn claim(
     conn: &mut SqliteConnection,
     batch: &mut EventBatch,
@@ -282,7 +283,7 @@ async fn claim(
     let task: TaskRow = sqlx::query_as(
         "UPDATE tasks SET state = 'leased', attempt = attempt + 1, \
          fencing_token = fencing_token + 1, worker_id = ?, leased_at = ?, lease_expires_at = ?, \
-         progress_event_at = 0, \
+         progress = '{}', progress_event_at = 0, \
          started_at = CASE WHEN started_at = 0 THEN ? ELSE started_at END \
          WHERE id = ? RETURNING *",
     )

@@ -343,7 +343,16 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
             };
             process.kill();
             report.worker_kills += 1;
-            for task in running {
+            // Stages that checkpoint (the render stages restart their frames instead).
+            let checkpointed = [
+                pb::Stage::NerfPretrain,
+                pb::Stage::DecoderPretrain,
+                pb::Stage::MutualLearning,
+            ];
+            for task in running
+                .into_iter()
+                .filter(|t| checkpointed.contains(&t.stage()))
+            {
                 let local = dir
                     .join("scratch")
                     .join(&id)
