@@ -314,48 +314,36 @@ impl CoordinatorArgs {
             (None, None) => None,
             _ => anyhow::bail!("TLS needs both a certificate and a key"),
         };
-        let secs = |v: Option<f64>, name: &str, default: Duration| -> anyhow::Result<Duration> {
-            match v {
-                None => Ok(default),
-                Some(s) if s.is_finite() && s > 0.0 => Ok(Duration::from_secs_f64(s)),
-                Some(s) => anyhow::bail!("{name} must be a positive number of seconds, not {s}"),
-            }
-        };
-        config.lease_ttl = secs(
+        config.lease_ttl = seconds(
             self.lease_ttl.or(file.lease_ttl),
             "lease_ttl",
             config.lease_ttl,
+            false,
         )?;
-        config.heartbeat_interval = secs(
+        config.heartbeat_interval = seconds(
             self.heartbeat_interval.or(file.heartbeat_interval),
             "heartbeat_interval",
             config.heartbeat_interval,
+            false,
         )?;
-        config.max_lease_wait = secs(
+        config.max_lease_wait = seconds(
             self.max_lease_wait.or(file.max_lease_wait),
             "max_lease_wait",
             config.max_lease_wait,
+            false,
         )?;
-        let secs_or_zero =
-            |v: Option<f64>, name: &str, default: Duration| -> anyhow::Result<Duration> {
-                match v {
-                    None => Ok(default),
-                    Some(s) if s.is_finite() && s >= 0.0 => Ok(Duration::from_secs_f64(s)),
-                    Some(s) => anyhow::bail!(
-                        "{name} must be zero or a positive number of seconds, not {s}"
-                    ),
-                }
-            };
-        config.progress_event_interval = secs_or_zero(
+        config.progress_event_interval = seconds(
             self.progress_event_interval
                 .or(file.progress_event_interval),
             "progress_event_interval",
             config.progress_event_interval,
+            true,
         )?;
-        config.drain_grace = secs_or_zero(
+        config.drain_grace = seconds(
             self.drain_grace.or(file.drain_grace),
             "drain_grace",
             config.drain_grace,
+            true,
         )?;
         if let Some(n) = self.max_attempts.or(file.max_attempts) {
             anyhow::ensure!(n >= 1, "max_attempts must be at least 1");
@@ -375,5 +363,25 @@ impl CoordinatorArgs {
         }
         config.spool_dir = self.spool_dir.or(file.spool_dir);
         Ok(config)
+    }
+}
+
+/// A duration option given in seconds: `default` when unset; a finite positive number (or
+/// zero, with `zero_ok`) otherwise.
+fn seconds(
+    value: Option<f64>,
+    name: &str,
+    default: Duration,
+    zero_ok: bool,
+) -> anyhow::Result<Duration> {
+    match value {
+        None => Ok(default),
+        Some(s) if s.is_finite() && (s > 0.0 || (zero_ok && s == 0.0)) => {
+            Ok(Duration::from_secs_f64(s))
+        }
+        Some(s) if zero_ok => {
+            anyhow::bail!("{name} must be zero or a positive number of seconds, not {s}")
+        }
+        Some(s) => anyhow::bail!("{name} must be a positive number of seconds, not {s}"),
     }
 }
