@@ -60,6 +60,7 @@ impl Coordinator {
         }
         let db = Db::open(&config.database).await?;
         let storage = Storage::open(&config.storage_url)?;
+        storage.check_access().await?;
         let (stop, stop_rx) = watch::channel(false);
         let (events, _) = broadcast::channel(4096);
         let writer = Writer::spawn(db.write.clone(), events.clone());
@@ -111,7 +112,13 @@ impl Coordinator {
             server = server
                 .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))?;
         }
+        let rpc_metrics = crate::rpc_metrics::RpcMetricsLayer::new(&[
+            stylenerf_proto::FILE_DESCRIPTOR_SET,
+            tonic_health::pb::FILE_DESCRIPTOR_SET,
+            tonic_reflection::pb::v1::FILE_DESCRIPTOR_SET,
+        ])?;
         let router = server
+            .layer(rpc_metrics)
             .add_service(health_service)
             .add_service(reflection)
             .add_service(InterceptedService::new(jobs, interceptor.clone()))

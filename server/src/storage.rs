@@ -101,6 +101,27 @@ impl Storage {
         })
     }
 
+    /// Writes, reads back and deletes a small object, so that a missing bucket, wrong
+    /// credentials or a read-only folder stop the coordinator at start with the store's own
+    /// message instead of failing the first upload.
+    pub async fn check_access(&self) -> anyhow::Result<()> {
+        let path = ObjectPath::from(".stylenerf-access-check");
+        let fail = |what: &str, e: object_store::Error| {
+            anyhow::anyhow!("storage {}: cannot {what} ({}): {e}", self.url, self.backend)
+        };
+        self.store
+            .put(&path, Bytes::from_static(b"ok").into())
+            .await
+            .map_err(|e| fail("write an object", e))?;
+        let read = async { self.store.get(&path).await?.bytes().await };
+        read.await.map_err(|e| fail("read an object back", e))?;
+        self.store
+            .delete(&path)
+            .await
+            .map_err(|e| fail("delete an object", e))?;
+        Ok(())
+    }
+
     /// Which store this is, e.g. `AmazonS3(bucket)` or `LocalFileSystem(file:///dir)`.
     pub fn backend(&self) -> &str {
         &self.backend

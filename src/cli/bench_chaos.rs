@@ -20,6 +20,7 @@ use stylenerf_engine::image_io::save_rgb_png;
 use stylenerf_engine::rng::Rng;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::style2d::painted;
+use stylenerf_server::storage::Storage;
 
 /// Options of `stylenerf bench chaos`.
 #[derive(Debug, Clone, clap::Args)]
@@ -42,6 +43,11 @@ pub struct BenchChaosArgs {
     /// Keep the cluster's files (database, store, logs) here instead of a temporary folder.
     #[arg(long)]
     pub dir: Option<PathBuf>,
+    /// The coordinator's artifact store (a folder or an `s3://`, `gs://`, `az://` URL, with
+    /// its options in the environment as for `coordinator --storage`); by default a folder
+    /// beside the database. Checkpoints are read back through the same store.
+    #[arg(long)]
+    pub storage: Option<String>,
 }
 
 /// Steps between checkpoints of the workers: the most a kill may cost, with upload lag.
@@ -64,9 +70,15 @@ pub struct ChaosReport {
     /// Most steps a killed worker had run since its newest local checkpoint (the checkpoint
     /// policy's bound: `--checkpoint-every-steps`); the rest of a loss is upload lag.
     pub most_steps_since_local_checkpoint: u64,
+    /// Killed tasks whose final attempt resumed from a checkpoint read back from the store
+    /// (at least the newest one stored when the task was last killed).
+    pub resumed_from_store: usize,
     /// Coordinator calls the workers retried through outages, by call (from their logs).
     pub retried_calls: BTreeMap<String, usize>,
     pub wall_secs: f64,
+    /// Objects in the artifact store at the end, by kind (`uploads`, `checkpoints`,
+    /// `outputs`): where inputs, checkpoints and results went.
+    pub stored_objects: BTreeMap<String, usize>,
     /// Every broken guarantee, described.
     pub violations: Vec<String>,
 }
@@ -128,7 +140,7 @@ struct Cluster {
 }
 
 impl Cluster {
-    fn start(dir: &Path, workers: usize) -> anyhow::Result<Cluster> {
+    fn start(dir: &Path, storage: &str, workers: usize) -> anyhow::Result<Cluster> {
         let port = std::net::TcpListener::bind("127.0.0.1:0")?
             .local_addr()?
             .port();
@@ -144,7 +156,7 @@ impl Cluster {
             "--database",
             &dir.join("coordinator.db").display().to_string(),
             "--storage",
-            &dir.join("store").display().to_string(),
+            storage,
             "--insecure-no-auth",
             "--lease-ttl",
             "3",
@@ -239,15 +251,10 @@ struct Loss {
     stored: u64,
 }
 
-/// The newest checkpoint step in a checkpoint folder.
-fn newest_checkpoint(dir: &Path) -> u64 {
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return 0;
-    };
-    entries
-        .flatten()
-        .filter_map(|e| {
-            let name = e.file_name().into_string().ok()?;
+/// The newest checkpoint step among checkpoint file names (`step-N.json`).
+fn newest_step(names: impl Iterator<Item = String>) -> u64 {
+    names
+        .filter_map(|name| {
             name.strip_prefix("step-")?
                 .strip_suffix(".json")?
                 .parse()
@@ -255,6 +262,48 @@ fn newest_checkpoint(dir: &Path) -> u64 {
         })
         .max()
         .unwrap_or(0)
+}
+
+/// The newest checkpoint step in a local checkpoint folder.
+fn newest_local_checkpoint(dir: &Path) -> u64 {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    newest_step(
+        entries
+            .flatten()
+            .filter_map(|e| e.file_name().into_string().ok()),
+    )
+}
+
+/// The newest checkpoint step a task has in the store (`<output prefix>ckpt/`).
+async fn newest_stored_checkpoint(store: &Storage, output_prefix: &str) -> u64 {
+    let objects = store
+        .list(&format!("{output_prefix}ckpt/"))
+        .await
+        .unwrap_or_default();
+    newest_step(
+        objects
+            .into_iter()
+            .filter_map(|(key, _)| key.rsplit('/').next().map(str::to_string)),
+    )
+}
+
+/// Objects in the store by kind: uploaded inputs, checkpoints, and everything else the jobs
+/// wrote.
+async fn stored_objects(store: &Storage) -> anyhow::Result<BTreeMap<String, usize>> {
+    let mut kinds = BTreeMap::new();
+    for (key, _) in store.list("").await? {
+        let kind = if key.starts_with("uploads/") {
+            "uploads"
+        } else if key.contains("/ckpt/") {
+            "checkpoints"
+        } else {
+            "outputs"
+        };
+        *kinds.entry(kind.to_string()).or_default() += 1;
+    }
+    Ok(kinds)
 }
 
 async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
@@ -267,8 +316,12 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
     let (scene, style) = inputs(&dir)?;
     let started = Instant::now();
     let deadline = started + Duration::from_secs(args.timeout_secs);
-    let mut cluster = Cluster::start(&dir, args.workers.max(1))?;
-    let store = dir.join("store");
+    let storage = args
+        .storage
+        .clone()
+        .unwrap_or_else(|| dir.join("store").display().to_string());
+    let store = Storage::open(&storage)?;
+    let mut cluster = Cluster::start(&dir, &storage, args.workers.max(1))?;
     let mut rng = Rng::new(args.seed);
     let mut report = ChaosReport::default();
     let mut acknowledged: Vec<String> = Vec::new();
@@ -360,8 +413,8 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
                     .join("out/ckpt");
                 losses.entry(task.id).or_default().push(Loss {
                     step: task.progress.as_ref().map_or(0, |p| p.step),
-                    local: newest_checkpoint(&local),
-                    stored: newest_checkpoint(&store.join(format!("{}ckpt", task.output_prefix))),
+                    local: newest_local_checkpoint(&local),
+                    stored: newest_stored_checkpoint(&store, &task.output_prefix).await,
                 });
             }
             cluster.spawn_worker()?;
@@ -416,6 +469,7 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
         .max()
         .unwrap_or(0);
     report.retried_calls = retried_calls(&dir.join("workers.log"));
+    report.stored_objects = stored_objects(&store).await?;
     report.wall_secs = started.elapsed().as_secs_f64();
     drop(cluster);
     Ok(report)
@@ -534,7 +588,9 @@ fn check_losses(job: &pb::Job, losses: &BTreeMap<u64, Vec<Loss>>, report: &mut C
             .copied();
         let last_checkpoint = kills.last().map_or(0, |l| l.stored);
         if let Some(resumed) = resumed.filter(|_| last_checkpoint > 0) {
-            if (resumed as u64) < last_checkpoint {
+            if (resumed as u64) >= last_checkpoint {
+                report.resumed_from_store += 1;
+            } else {
                 report.violations.push(format!(
                     "task {} resumed from step {resumed} although step {last_checkpoint} was stored",
                     task.id
