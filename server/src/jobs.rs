@@ -430,17 +430,21 @@ pub async fn set_job_state(
     } else {
         0
     };
-    sqlx::query(
+    let created_at: Option<i64> = sqlx::query_scalar(
         "UPDATE jobs SET state = ?, updated_at = ?, finished_at = ?, error = COALESCE(?, error) \
-         WHERE id = ?",
+         WHERE id = ? RETURNING created_at",
     )
     .bind(state)
     .bind(now)
     .bind(finished)
     .bind(error)
     .bind(job_id)
-    .execute(&mut *conn)
+    .fetch_optional(&mut *conn)
     .await?;
+    if let Some(created_at) = created_at.filter(|_| finished > 0) {
+        metrics::histogram!("stylenerf_job_duration_seconds", "outcome" => state.to_string())
+            .record((now - created_at).max(0) as f64 / 1000.0);
+    }
     batch.push(NewEvent::job(job_id, JOB_STATE, state, error.unwrap_or("")));
     Ok(())
 }

@@ -12,7 +12,7 @@ use crate::state::Shared;
 use crate::writer::{OpError, OpResult};
 use futures::FutureExt;
 use sqlx::SqliteConnection;
-use std::collections::HashSet;
+use std::collections::{BTreeMap, BTreeSet, HashSet};
 use std::sync::atomic::Ordering;
 use stylenerf_proto::v1 as pb;
 use tonic::Status;
@@ -242,8 +242,9 @@ async fn lease_in(
     // Look at the head of the queue first; only a worker that matches none of it (labels)
     // searches deeper.
     for window in [8i64, 1024] {
-        let candidates: Vec<(i64, String)> = sqlx::query_as(
-            "SELECT t.id, j.labels FROM tasks t JOIN jobs j ON j.id = t.job_id \
+        let candidates: Vec<(i64, String, i64, bool)> = sqlx::query_as(
+            "SELECT t.id, j.labels, t.ready_at, j.require_cuda FROM tasks t \
+             JOIN jobs j ON j.id = t.job_id \
              WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
              ORDER BY t.ready_at, t.id LIMIT ?",
         )
@@ -253,14 +254,20 @@ async fn lease_in(
         .fetch_all(&mut *conn)
         .await?;
         let seen = candidates.len() as i64;
-        let chosen = candidates.into_iter().find(|(_, job_labels)| {
+        let chosen = candidates.into_iter().find(|(_, job_labels, _, _)| {
             serde_json::from_str::<Vec<String>>(job_labels)
                 .unwrap_or_default()
                 .iter()
                 .all(|l| labels.contains(l))
         });
-        if let Some((task_id, _)) = chosen {
+        if let Some((task_id, _, ready_at, require_cuda)) = chosen {
             let task = claim(conn, batch, task_id, worker_id, now, ttl).await?;
+            metrics::histogram!(
+                "stylenerf_queue_wait_seconds",
+                "stage" => task.stage.clone(),
+                "device" => device_class(require_cuda),
+            )
+            .record((now - ready_at).max(0) as f64 / 1000.0);
             return Ok(Ok((Some(task), requeued)));
         }
         if seen < window {
@@ -898,25 +905,79 @@ async fn settle_job(
     Ok(())
 }
 
-/// Refreshes the scheduling gauges (queue depth and running tasks per stage, live workers).
+/// The device class of a job's tasks in metrics: `cuda` if it needs a CUDA worker, else `cpu`
+/// (any worker may run it; the CPU pool is the one to scale for it).
+fn device_class(require_cuda: bool) -> &'static str {
+    if require_cuda {
+        "cuda"
+    } else {
+        "cpu"
+    }
+}
+
+/// A job's required worker labels as one metric label value: sorted, comma-joined.
+fn label_set(labels_json: &str) -> String {
+    let mut labels: Vec<String> = serde_json::from_str(labels_json).unwrap_or_default();
+    labels.sort();
+    labels.dedup();
+    labels.join(",")
+}
+
+/// Series of the queue gauges set by the last refresh (stage, device class, label set), so
+/// that one whose tasks are all gone is set back to zero rather than left at its last value.
+static QUEUE_SERIES: std::sync::Mutex<BTreeSet<(&'static str, &'static str, String)>> =
+    std::sync::Mutex::new(BTreeSet::new());
+
+/// Refreshes the scheduling gauges: queue depth and running tasks per stage, device class and
+/// required label set (every stage has its zero series for each class, so that an autoscaler
+/// reads 0, not "no data"), and live workers.
 pub async fn refresh_gauges(shared: &Shared) -> Result<(), sqlx::Error> {
-    let counts: Vec<(String, String, i64)> = sqlx::query_as(
-        "SELECT stage, state, COUNT(*) FROM tasks WHERE state IN ('ready', 'leased') \
-         GROUP BY stage, state",
+    let counts: Vec<(String, String, bool, String, i64)> = sqlx::query_as(
+        "SELECT t.stage, t.state, j.require_cuda, j.labels, COUNT(*) FROM tasks t \
+         JOIN jobs j ON j.id = t.job_id WHERE t.state IN ('ready', 'leased') \
+         GROUP BY t.stage, t.state, j.require_cuda, j.labels",
     )
     .fetch_all(&shared.db.read)
     .await?;
+    // (stage, device, labels) -> (ready, leased)
+    let mut series: BTreeMap<(&'static str, &'static str, String), (f64, f64)> = BTreeMap::new();
     for stage in Stage::ALL {
-        let count = |state: &str| {
-            counts
-                .iter()
-                .find(|(s, st, _)| s == stage.as_str() && st == state)
-                .map_or(0, |(_, _, n)| *n) as f64
+        for device in ["cpu", "cuda"] {
+            series.insert((stage.as_str(), device, String::new()), (0.0, 0.0));
+        }
+    }
+    for (stage, state, require_cuda, labels, count) in counts {
+        let Some(stage) = Stage::ALL.iter().find(|s| s.as_str() == stage) else {
+            continue;
         };
-        metrics::gauge!("stylenerf_queue_depth", "stage" => stage.as_str())
-            .set(count(task_state::READY));
-        metrics::gauge!("stylenerf_tasks_running", "stage" => stage.as_str())
-            .set(count(task_state::LEASED));
+        let entry = series
+            .entry((stage.as_str(), device_class(require_cuda), label_set(&labels)))
+            .or_default();
+        if state == task_state::READY {
+            entry.0 += count as f64;
+        } else {
+            entry.1 += count as f64;
+        }
+    }
+    {
+        let mut previous = QUEUE_SERIES.lock().unwrap_or_else(|e| e.into_inner());
+        for key in previous.iter() {
+            series.entry(key.clone()).or_default();
+        }
+        for ((stage, device, labels), (ready, leased)) in &series {
+            let labels = [
+                ("stage", stage.to_string()),
+                ("device", device.to_string()),
+                ("labels", labels.clone()),
+            ];
+            metrics::gauge!("stylenerf_queue_depth", &labels).set(*ready);
+            metrics::gauge!("stylenerf_tasks_running", &labels).set(*leased);
+        }
+        *previous = series
+            .into_iter()
+            .filter(|(_, (ready, leased))| *ready > 0.0 || *leased > 0.0)
+            .map(|(key, _)| key)
+            .collect();
     }
     let since = now_ms() - shared.config.worker_timeout.as_millis() as i64;
     // Live: asked for work recently, or holds a lease its heartbeats keep current.

@@ -12,6 +12,7 @@ mod client_view;
 mod common;
 mod coordinator;
 mod demo;
+mod health;
 mod nerf;
 mod run;
 mod scene;
@@ -73,6 +74,9 @@ pub enum Command {
     Worker(Box<worker::WorkerCommand>),
     #[command(flatten)]
     Client(client::ClientCommand),
+    /// Probe a coordinator's gRPC health (exit 0 when serving) or a worker's HTTP `/healthz`:
+    /// the containers' health check.
+    Health(health::HealthArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -157,6 +161,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
         Command::Bench(BenchCommand::Chaos(args)) => bench_chaos::run(args),
+        Command::Health(args) => health::run(args),
     }
 }
 

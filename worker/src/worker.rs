@@ -196,6 +196,7 @@ impl Worker {
         let budget = self.config.memory_bytes;
         let max_tasks = self.config.max_tasks.max(1);
         while !*shutdown.borrow() {
+            metrics::gauge!("stylenerf_worker_tasks_running").set(running.len() as f64);
             let used: u64 = reserved.values().sum();
             let free = budget.saturating_sub(used);
             let can_lease = running.len() < max_tasks && (budget == 0 || free > 0);
@@ -264,6 +265,7 @@ impl Worker {
                 },
             }
         }
+        metrics::gauge!("stylenerf_worker_draining").set(1.0);
         if !running.is_empty() {
             tracing::info!(
                 tasks = running.len(),
@@ -297,17 +299,36 @@ impl Worker {
         };
         stops.remove(&task.task_id);
         reserved.remove(&task.task_id);
-        match &result {
-            TaskResult::Completed { .. } => summary.completed += 1,
-            TaskResult::Failed { .. } => summary.failed += 1,
-            TaskResult::Cancelled => summary.cancelled += 1,
-            TaskResult::Released { .. } | TaskResult::LeaseLost => summary.released += 1,
-        }
+        let outcome = match &result {
+            TaskResult::Completed { .. } => {
+                summary.completed += 1;
+                "completed"
+            }
+            TaskResult::Failed { .. } => {
+                summary.failed += 1;
+                "failed"
+            }
+            TaskResult::Cancelled => {
+                summary.cancelled += 1;
+                "cancelled"
+            }
+            TaskResult::Released { .. } | TaskResult::LeaseLost => {
+                summary.released += 1;
+                "released"
+            }
+        };
+        let stage = pb::Stage::try_from(task.stage).unwrap_or_default();
+        metrics::counter!(
+            "stylenerf_worker_tasks_total",
+            "stage" => crate::stages::stage_name(stage),
+            "outcome" => outcome,
+        )
+        .increment(1);
         tracing::info!(task_id = task.task_id, ?result, "task finished");
         let _ = self.handle.events.send(WorkerEvent::TaskFinished {
             task_id: task.task_id,
             job_id: task.job_id,
-            stage: pb::Stage::try_from(task.stage).unwrap_or_default(),
+            stage,
             result,
         });
     }

@@ -6,6 +6,7 @@ mod auth;
 mod hostile;
 mod leases;
 mod lifecycle;
+mod metrics;
 mod progress;
 mod restart;
 mod support;
