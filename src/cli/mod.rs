@@ -39,7 +39,7 @@ pub struct GlobalArgs {
     #[arg(long, global = true, env = "STYLENERF_LOG", default_value = "info")]
     pub log: String,
     /// Log format.
-    #[arg(long, global = true, value_enum, default_value_t = LogFormat::Pretty)]
+    #[arg(long, global = true, env = "STYLENERF_LOG_FORMAT", value_enum, default_value_t = LogFormat::Pretty)]
     pub log_format: LogFormat,
 }
 

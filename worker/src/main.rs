@@ -14,7 +14,7 @@ struct Cli {
     #[arg(long, env = "STYLENERF_LOG", default_value = "info")]
     log: String,
     /// Log format.
-    #[arg(long, value_enum, default_value_t = LogFormat::Pretty)]
+    #[arg(long, env = "STYLENERF_LOG_FORMAT", value_enum, default_value_t = LogFormat::Pretty)]
     log_format: LogFormat,
 }
 
