@@ -43,6 +43,13 @@ pub struct CoordinatorConfig {
     /// On shutdown, health turns NOT_SERVING at once and calls are still served for this long,
     /// so that load balancers and Kubernetes readiness probes stop sending new calls first.
     pub drain_grace: Duration,
+    /// Snapshot the database to the object store this often (`None`: no backups), and once
+    /// more at a clean shutdown.
+    pub backup_interval: Option<Duration>,
+    /// Snapshots kept in the store (the oldest are deleted).
+    pub backups_kept: usize,
+    /// At start, if the database file does not exist, download the newest snapshot first.
+    pub restore_from_backup: bool,
     /// Accepted preset names.
     pub presets: Vec<String>,
     pub limits: Limits,
@@ -140,6 +147,9 @@ impl CoordinatorConfig {
             reaper_interval: Duration::from_secs(1),
             worker_timeout: Duration::from_secs(60),
             drain_grace: Duration::ZERO,
+            backup_interval: None,
+            backups_kept: 48,
+            restore_from_backup: false,
             presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
             limits: Limits::default(),
             spool_dir: None,
@@ -205,6 +215,16 @@ pub struct CoordinatorArgs {
     /// that readiness probes take the coordinator out of rotation first [default: 0].
     #[arg(long, env = "STYLENERF_DRAIN_GRACE")]
     pub drain_grace: Option<f64>,
+    /// Snapshot the database into the artifact store (`backups/`) every this many seconds,
+    /// and at a clean shutdown; 0 = never [default: 0].
+    #[arg(long, env = "STYLENERF_BACKUP_EVERY")]
+    pub backup_every: Option<f64>,
+    /// Snapshots kept in the store [default: 48].
+    #[arg(long, env = "STYLENERF_BACKUPS_KEPT")]
+    pub backups_kept: Option<usize>,
+    /// If the database file does not exist, start from the newest snapshot in the store.
+    #[arg(long, env = "STYLENERF_RESTORE_FROM_BACKUP")]
+    pub restore_from_backup: bool,
     /// Accepted preset names, comma-separated [default: tiny,quick,standard,paper].
     #[arg(long, env = "STYLENERF_PRESETS", value_delimiter = ',')]
     pub presets: Option<Vec<String>>,
@@ -241,6 +261,9 @@ struct FileConfig {
     progress_event_interval: Option<f64>,
     max_attempts: Option<u32>,
     drain_grace: Option<f64>,
+    backup_every: Option<f64>,
+    backups_kept: Option<usize>,
+    restore_from_backup: Option<bool>,
     presets: Option<Vec<String>>,
     max_dataset_mib: Option<u64>,
     max_style_mib: Option<u64>,
@@ -345,6 +368,19 @@ impl CoordinatorArgs {
             config.drain_grace,
             true,
         )?;
+        let backup_every = seconds(
+            self.backup_every.or(file.backup_every),
+            "backup_every",
+            Duration::ZERO,
+            true,
+        )?;
+        config.backup_interval = (!backup_every.is_zero()).then_some(backup_every);
+        if let Some(n) = self.backups_kept.or(file.backups_kept) {
+            anyhow::ensure!(n >= 1, "backups_kept must be at least 1");
+            config.backups_kept = n;
+        }
+        config.restore_from_backup =
+            self.restore_from_backup || file.restore_from_backup.unwrap_or(false);
         if let Some(n) = self.max_attempts.or(file.max_attempts) {
             anyhow::ensure!(n >= 1, "max_attempts must be at least 1");
             config.max_attempts = n;

@@ -58,9 +58,17 @@ impl Coordinator {
                 )
             })?;
         }
-        let db = Db::open(&config.database).await?;
         let storage = Storage::open(&config.storage_url)?;
         storage.check_access().await?;
+        if config.restore_from_backup {
+            match crate::backup::restore(&storage, &config.database).await? {
+                Some(key) => tracing::warn!(%key, database = %config.database.display(),
+                    "database restored from the newest backup"),
+                None => tracing::info!("restore from backup: database present or no backup; \
+                    starting from the file"),
+            }
+        }
+        let db = Db::open(&config.database).await?;
         let (stop, stop_rx) = watch::channel(false);
         let (events, _) = broadcast::channel(4096);
         let writer = Writer::spawn(db.write.clone(), events.clone());
@@ -134,6 +142,9 @@ impl Coordinator {
         }));
 
         let mut background = vec![tokio::spawn(reaper(shared.clone()))];
+        if let Some(interval) = config.backup_interval {
+            background.push(tokio::spawn(crate::backup::run(shared.clone(), interval)));
+        }
         let metrics_addr = match config.metrics_listen {
             Some(addr) => {
                 let (addr, task) = crate::metrics_http::serve(addr, stop_rx.clone()).await?;
@@ -238,6 +249,13 @@ impl CoordinatorHandle {
         }
         for task in self.background {
             let _ = tokio::time::timeout(Duration::from_secs(5), task).await;
+        }
+        // Nothing is written any more: the last snapshot loses nothing.
+        if self.shared.config.backup_interval.is_some() {
+            match crate::backup::snapshot(&self.shared).await {
+                Ok(key) => tracing::info!(%key, "database backed up at shutdown"),
+                Err(e) => tracing::error!(error = %e, "backing up the database at shutdown failed"),
+            }
         }
         self.shared.db.close().await;
         tracing::info!("coordinator stopped");

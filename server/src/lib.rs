@@ -7,6 +7,7 @@
 
 mod api;
 pub mod auth;
+mod backup;
 pub mod bench;
 pub mod config;
 mod coordinator;

@@ -157,6 +157,14 @@ impl Storage {
         Ok(())
     }
 
+    /// Deletes an object; one already gone is fine.
+    pub async fn delete(&self, key: &str) -> anyhow::Result<()> {
+        match self.store.delete(&ObjectPath::from(key)).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(e.into()),
+        }
+    }
+
     /// Reads a whole object into a local file (for validating staged datasets).
     pub async fn get_to_file(&self, key: &str, file: &std::path::Path) -> Result<u64, Status> {
         let result = self

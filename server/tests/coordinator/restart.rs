@@ -98,3 +98,61 @@ async fn health_reports_not_serving_while_draining() {
     assert!(!stopping.is_finished(), "calls are served during the grace");
     stopping.await.unwrap().unwrap();
 }
+
+/// Snapshots in the store (`backups/coordinator-*.db`), by name.
+fn backups(store: &std::path::Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(store.join("backups"))
+        .map(|entries| {
+            entries
+                .flatten()
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    names.sort();
+    names
+}
+
+#[tokio::test]
+async fn a_lost_database_is_restored_from_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("artifacts");
+    let mut first = config(dir.path());
+    first.backup_interval = Some(std::time::Duration::from_millis(50));
+    first.backups_kept = 2;
+    let server = start(first.clone()).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let job = create_job(&mut client).await;
+    // Periodic snapshots while serving, pruned to the newest two.
+    for _ in 0..100 {
+        if backups(&store).len() == 2 {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+    assert_eq!(backups(&store).len(), 2, "{:?}", backups(&store));
+    server.shutdown().await.unwrap();
+
+    // The machine is gone with its volume: a new coordinator, a new (empty) database path,
+    // the same store.
+    let mut second = config(&dir.path().join("elsewhere"));
+    second.storage_url = first.storage_url.clone();
+    second.restore_from_backup = true;
+    assert!(!second.database.exists());
+    let server = start(second.clone()).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let restored = get_job(&mut client, &job.id).await;
+    assert_eq!(restored.state(), pb::JobState::Queued);
+    let mut worker = FakeWorker::register(&server, "cpu", 0).await;
+    let task = worker.lease(1000).await.expect("its first stage is leased");
+    assert_eq!(task.job_id, job.id);
+    let newer = create_job(&mut client).await;
+    server.shutdown().await.unwrap();
+
+    // With the database present, the flag changes nothing: the newer job is still there.
+    let server = start(second).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    assert_eq!(get_job(&mut client, &newer.id).await.id, newer.id);
+    server.shutdown().await.unwrap();
+}
