@@ -92,7 +92,9 @@ fn a_job_runs_and_resumes_with_every_artifact_in_s3() {
     };
     let moto = start_moto(&program);
     let output = Command::new(env!("CARGO_BIN_EXE_stylenerf"))
-        .args(["--log", "warn", "bench", "chaos", "--jobs", "3", "--kills", "12"])
+        .args([
+            "--log", "warn", "bench", "chaos", "--jobs", "3", "--kills", "12",
+        ])
         .args(["--workers", "2", "--seed", "9", "--timeout-secs", "600"])
         .args(["--storage", "s3://stylenerf-ci/cluster"])
         .env("AWS_ENDPOINT", &moto.endpoint)
@@ -110,7 +112,11 @@ fn a_job_runs_and_resumes_with_every_artifact_in_s3() {
     );
     let report: serde_json::Value = serde_json::from_str(&stdout).expect("a JSON report");
     assert_eq!(report["jobs_succeeded"], 3, "{report}");
-    assert_eq!(report["violations"].as_array().unwrap().len(), 0, "{report}");
+    assert_eq!(
+        report["violations"].as_array().unwrap().len(),
+        0,
+        "{report}"
+    );
     // Inputs, checkpoints and outputs went to the bucket (read back through S3's listing).
     for kind in ["uploads", "checkpoints", "outputs"] {
         assert!(

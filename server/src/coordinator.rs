@@ -64,8 +64,10 @@ impl Coordinator {
             match crate::backup::restore(&storage, &config.database).await? {
                 Some(key) => tracing::warn!(%key, database = %config.database.display(),
                     "database restored from the newest backup"),
-                None => tracing::info!("restore from backup: database present or no backup; \
-                    starting from the file"),
+                None => tracing::info!(
+                    "restore from backup: database present or no backup; \
+                    starting from the file"
+                ),
             }
         }
         let db = Db::open(&config.database).await?;

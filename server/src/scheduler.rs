@@ -951,7 +951,11 @@ pub async fn refresh_gauges(shared: &Shared) -> Result<(), sqlx::Error> {
             continue;
         };
         let entry = series
-            .entry((stage.as_str(), device_class(require_cuda), label_set(&labels)))
+            .entry((
+                stage.as_str(),
+                device_class(require_cuda),
+                label_set(&labels),
+            ))
             .or_default();
         if state == task_state::READY {
             entry.0 += count as f64;

@@ -107,7 +107,11 @@ impl Storage {
     pub async fn check_access(&self) -> anyhow::Result<()> {
         let path = ObjectPath::from(".stylenerf-access-check");
         let fail = |what: &str, e: object_store::Error| {
-            anyhow::anyhow!("storage {}: cannot {what} ({}): {e}", self.url, self.backend)
+            anyhow::anyhow!(
+                "storage {}: cannot {what} ({}): {e}",
+                self.url,
+                self.backend
+            )
         };
         self.store
             .put(&path, Bytes::from_static(b"ok").into())

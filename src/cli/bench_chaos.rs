@@ -349,7 +349,10 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
     let kills = args.kills;
     while report.worker_kills + report.coordinator_kills < kills || acknowledged.len() < args.jobs {
         anyhow::ensure!(Instant::now() < deadline, "timed out during the kills");
-        tokio::time::sleep(Duration::from_millis(300 + rng.below(1500) as u64)).await;
+        // Without kills (`--kills 0`: a throughput run) every job is submitted at once.
+        if kills > 0 {
+            tokio::time::sleep(Duration::from_millis(300 + rng.below(1500) as u64)).await;
+        }
         if acknowledged.len() < args.jobs {
             if let Ok(client) = Client::connect(&cluster.endpoint, None).await {
                 if let Ok(submitted) = client.submit(&spec(acknowledged.len())).await {

@@ -18,7 +18,10 @@ fn get(addr: std::net::SocketAddr, path: &str) -> (String, String) {
     let mut reply = String::new();
     stream.read_to_string(&mut reply).unwrap();
     let (head, body) = reply.split_once("\r\n\r\n").unwrap_or((&reply, ""));
-    (head.lines().next().unwrap_or("").to_string(), body.to_string())
+    (
+        head.lines().next().unwrap_or("").to_string(),
+        body.to_string(),
+    )
 }
 
 /// The value of the first sample whose line starts with `series` (name and labels).
@@ -78,7 +81,8 @@ async fn metrics_split_the_queue_by_device_class_and_labels() {
         memory_bytes: 0,
     });
     client.create_job(request).await.unwrap();
-    let cpu = r#"stylenerf_queue_depth{stage="nerf_pretrain",device="cpu",labels="a100,zone-metrics-b"}"#;
+    let cpu =
+        r#"stylenerf_queue_depth{stage="nerf_pretrain",device="cpu",labels="a100,zone-metrics-b"}"#;
     wait_for(addr, cpu, 1.0).await;
     let mut workers = worker_client(&server, Some(WORKER)).await;
     let id = workers
@@ -101,7 +105,10 @@ async fn metrics_split_the_queue_by_device_class_and_labels() {
         workers,
         artifacts: artifact_client(&server, Some(WORKER)).await,
     };
-    assert!(worker.lease(1000).await.is_some(), "the labelled CPU task is leased");
+    assert!(
+        worker.lease(1000).await.is_some(),
+        "the labelled CPU task is leased"
+    );
     // Its series drops back to zero (not left at its last value); the CUDA one stays.
     let text = wait_for(addr, cpu, 0.0).await;
     assert_eq!(sample(&text, cuda), Some(1.0), "{text}");
@@ -133,10 +140,16 @@ async fn metrics_split_the_queue_by_device_class_and_labels() {
         ),
         "{text}"
     );
-    assert!(text.contains(r#"method="unknown",code="Unimplemented""#), "{text}");
+    assert!(
+        text.contains(r#"method="unknown",code="Unimplemented""#),
+        "{text}"
+    );
     assert!(!text.contains("evil"), "{text}");
     // The process and the build.
-    assert!(sample(&text, "process_resident_memory_bytes").unwrap_or(0.0) > 0.0, "{text}");
+    assert!(
+        sample(&text, "process_resident_memory_bytes").unwrap_or(0.0) > 0.0,
+        "{text}"
+    );
     assert!(text.contains("stylenerf_build_info{version=\""), "{text}");
 
     let (status, body) = tokio::task::spawn_blocking(move || get(addr, "/healthz"))
