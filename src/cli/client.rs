@@ -37,8 +37,8 @@ pub struct ConnectionArgs {
     /// system CA bundle].
     #[arg(long, env = "STYLENERF_CA_CERT")]
     pub ca_cert: Option<PathBuf>,
-    /// Output format.
-    #[arg(long, value_enum, default_value_t = OutputFormat::Text)]
+    /// Output format: text for people, json (proto JSON field names) for scripts.
+    #[arg(short = 'o', long, value_enum, default_value_t = OutputFormat::Text)]
     pub output: OutputFormat,
 }
 
@@ -190,7 +190,7 @@ pub struct FetchArgs {
     /// Job id.
     pub job: String,
     /// Destination folder [default: ./<job id>].
-    #[arg(short = 'o', long = "out", value_name = "DIR")]
+    #[arg(long = "out", value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Only artifacts under this prefix of the job, e.g. `render_stylized/`.
     #[arg(long, default_value = "")]
@@ -621,7 +621,13 @@ fn significant(value: f64) -> String {
     format!("{value:.decimals$}")
 }
 
-/// `120/800 loss 0.0123 psnr 24.31 lr 0.005000 ETA 1m20s`.
+/// The metrics a person reads, in this order; the others a stage reports (`rays`,
+/// `samples_per_ray`, `occupied`, `resumed_from`, …) are for benchmarks and `-o json`.
+const SHOWN_METRICS: [&str; 4] = ["psnr", "style", "content", "lr"];
+
+/// `120/800 ETA 1m20s loss 0.01230 psnr 24.31 lr 0.005000`: step and the stage's ETA first
+/// (what a narrow terminal keeps), then the loss and the curated metrics with four significant
+/// digits, then the worker's message.
 pub fn describe_progress(p: &pb::Progress) -> String {
     let mut parts = Vec::new();
     if p.total > 0 {
@@ -629,16 +635,16 @@ pub fn describe_progress(p: &pb::Progress) -> String {
     } else if p.step > 0 {
         parts.push(format!("step {}", p.step));
     }
-    if p.loss != 0.0 {
-        parts.push(format!("loss {:.4}", p.loss));
-    }
-    let mut metrics: Vec<_> = p.metrics.iter().collect();
-    metrics.sort_by(|a, b| a.0.cmp(b.0));
-    for (name, value) in metrics {
-        parts.push(format!("{name} {}", significant(*value)));
-    }
     if p.eta_seconds > 0.0 && p.total > 0 && p.step < p.total {
         parts.push(format!("ETA {}", duration(p.eta_seconds)));
+    }
+    if p.loss != 0.0 {
+        parts.push(format!("loss {}", significant(p.loss)));
+    }
+    for name in SHOWN_METRICS {
+        if let Some(value) = p.metrics.get(name) {
+            parts.push(format!("{name} {}", significant(*value)));
+        }
     }
     if !p.message.is_empty() {
         parts.push(p.message.clone());
@@ -694,7 +700,7 @@ fn print_job(out: &mut dyn Write, job: &pb::Job) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn now_ms() -> i64 {
+pub fn now_ms() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as i64)
@@ -778,21 +784,34 @@ mod tests {
             .to_string();
         assert!(err.contains("prefix the setting with its stage"), "{err}");
         assert_eq!(duration(75.0), "1m15s");
+        // The metrics a person reads, in a fixed order with four significant digits; the
+        // internal ones stay out of the line.
         let progress = pb::Progress {
             step: 120,
             total: 800,
+            loss: 0.0123,
+            eta_seconds: 80.0,
             metrics: [
-                ("psnr".to_string(), 24.3149),
-                ("lr".to_string(), 0.005),
-                ("tiny".to_string(), 0.00005),
+                ("lr".to_string(), 0.00005),
                 ("rays".to_string(), 8192.0),
+                ("psnr".to_string(), 24.3149),
+                ("samples_per_ray".to_string(), 29.5),
+                ("style".to_string(), 1.5),
             ]
             .into(),
             ..Default::default()
         };
+        let line = describe_progress(&progress);
         assert_eq!(
-            describe_progress(&progress),
-            "120/800 lr 0.005000 psnr 24.31 rays 8192 tiny 5.00e-5"
+            line,
+            "120/800 ETA 1m20s loss 0.01230 psnr 24.31 style 1.500 lr 5.00e-5"
+        );
+        // In the watch view (16-column stage name, bar, time run) at 80 columns, what is cut
+        // is the end of the metrics, never the step or the ETA.
+        let shown = 80 - 16 - 20 - "12m03s ".len();
+        assert!(
+            line.find("ETA 1m20s").unwrap() + "ETA 1m20s".len() <= shown,
+            "{line}"
         );
         assert_eq!(clock(3_723_000), "01:02:03");
     }
@@ -904,7 +923,7 @@ mod tests {
         let fetched: Value = serde_json::from_str(
             &run_line(
                 &[
-                    &["fetch", &job, "--inputs", "-o"][..],
+                    &["fetch", &job, "--inputs", "--out"][..],
                     &[dir.path().join("out").to_str().unwrap()],
                     &common,
                 ]

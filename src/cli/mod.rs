@@ -74,6 +74,11 @@ pub enum Command {
     Worker(Box<worker::WorkerCommand>),
     #[command(flatten)]
     Client(client::ClientCommand),
+    /// Print a shell completion script: `stylenerf completions bash > ~/.local/share/bash-completion/completions/stylenerf`.
+    Completions {
+        /// bash, zsh, fish, elvish or powershell
+        shell: clap_complete::Shell,
+    },
     /// Probe a coordinator's gRPC health (exit 0 when serving) or a worker's HTTP `/healthz`:
     /// the containers' health check.
     Health(health::HealthArgs),
@@ -162,6 +167,13 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
         Command::Bench(BenchCommand::Chaos(args)) => bench_chaos::run(args),
         Command::Health(args) => health::run(args),
+        Command::Completions { shell } => {
+            let mut command = <Cli as clap::CommandFactory>::command();
+            let mut script = Vec::new();
+            clap_complete::generate(shell, &mut command, "stylenerf", &mut script);
+            std::io::Write::write_all(&mut std::io::stdout(), &script)?;
+            Ok(())
+        }
     }
 }
 

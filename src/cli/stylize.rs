@@ -33,7 +33,7 @@ pub enum StylizeCommand {
 #[derive(Debug, Args)]
 pub struct ExportArgs {
     /// Output folder; each style is written as `<name>.png`.
-    #[arg(short, long)]
+    #[arg(long = "out", value_name = "DIR")]
     output: PathBuf,
     /// Side of the images.
     #[arg(long, default_value_t = StyleImage::BUILTIN_SIZE)]
@@ -49,7 +49,7 @@ pub struct ImageArgs {
     #[arg(long)]
     style: String,
     /// Output PNG.
-    #[arg(short, long)]
+    #[arg(long = "out", value_name = "FILE")]
     output: PathBuf,
     /// Style strength: 1 = full style, 0 = content features unchanged.
     #[arg(long, default_value_t = 1.0)]

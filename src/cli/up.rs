@@ -75,7 +75,7 @@ async fn up(args: UpArgs) -> anyhow::Result<()> {
     println!("submit a job from another terminal:");
     println!("  export STYLENERF_ENDPOINT={endpoint}");
     println!("  stylenerf submit --data SCENE_DIR --style STYLE.png --preset quick --wait");
-    println!("  stylenerf list; stylenerf watch JOB; stylenerf fetch JOB -o out/");
+    println!("  stylenerf list; stylenerf watch JOB; stylenerf fetch JOB --out out/");
     println!("Ctrl-C stops the workers (they checkpoint) and then the coordinator.");
 
     let mut tick = tokio::time::interval(Duration::from_secs(1));
