@@ -108,10 +108,16 @@ impl Coordinator {
         health
             .set_serving::<ArtifactServiceServer<ArtifactApi>>()
             .await;
-        let reflection = tonic_reflection::server::Builder::configure()
-            .register_encoded_file_descriptor_set(stylenerf_proto::FILE_DESCRIPTOR_SET)
-            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-            .build_v1()?;
+        // Reflection in both versions clients use (grpcurl 1.8 and Python's client still ask
+        // v1alpha), with the google.rpc error details our statuses carry.
+        let reflection = || {
+            tonic_reflection::server::Builder::configure()
+                .register_encoded_file_descriptor_set(stylenerf_proto::FILE_DESCRIPTOR_SET)
+                .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+                .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
+        };
+        let reflection_v1alpha = reflection().build_v1alpha()?;
+        let reflection = reflection().build_v1()?;
 
         let mut server = Server::builder().tcp_nodelay(true);
         if let Some(tls) = &config.tls {
@@ -126,11 +132,13 @@ impl Coordinator {
             stylenerf_proto::FILE_DESCRIPTOR_SET,
             tonic_health::pb::FILE_DESCRIPTOR_SET,
             tonic_reflection::pb::v1::FILE_DESCRIPTOR_SET,
+            tonic_reflection::pb::v1alpha::FILE_DESCRIPTOR_SET,
         ])?;
         let router = server
             .layer(rpc_metrics)
             .add_service(health_service)
             .add_service(reflection)
+            .add_service(reflection_v1alpha)
             .add_service(InterceptedService::new(jobs, interceptor.clone()))
             .add_service(InterceptedService::new(workers, interceptor.clone()))
             .add_service(InterceptedService::new(artifacts, interceptor));

@@ -8,6 +8,7 @@ mod leases;
 mod lifecycle;
 mod metrics;
 mod progress;
+mod reflection;
 mod restart;
 mod support;
 mod tls;
