@@ -14,7 +14,7 @@
 //! let job = client.submit(&spec).await?.job;
 //! let mut events = client.watch(&job.id, WatchOptions::default()).await?;
 //! while let Some(event) = events.next().await {
-//!     println!("{}", stylenerf_client::json::event(&event?));
+//!     println!("{}", stylenerf_client::json::message(&event?));
 //! }
 //! client.download(&job.id, "out/lego").await?;
 //! # Ok(()) }

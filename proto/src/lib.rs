@@ -7,6 +7,8 @@ pub mod chunks;
 /// Generated code of the `stylenerf.v1` package.
 pub mod v1 {
     tonic::include_proto!("stylenerf.v1");
+    // The proto JSON mapping of every message (serde `Serialize`/`Deserialize`).
+    include!(concat!(env!("OUT_DIR"), "/stylenerf.v1.serde.rs"));
 }
 
 /// The encoded `FileDescriptorSet` of the protocol, for gRPC server reflection.

@@ -322,7 +322,7 @@ pub async fn execute(command: ClientCommand, out: &mut dyn Write) -> anyhow::Res
             let client = args.connection.connect().await?;
             let job = client.get(&args.job).await?;
             if args.connection.json() {
-                print_json(out, &to_json::job(&job))
+                print_json(out, &to_json::message(&job))
             } else {
                 print_job(out, &job)
             }
@@ -336,7 +336,7 @@ pub async fn execute(command: ClientCommand, out: &mut dyn Write) -> anyhow::Res
             let client = args.connection.connect().await?;
             let job = client.cancel(&args.job, &args.reason).await?;
             if args.connection.json() {
-                print_json(out, &to_json::job(&job))
+                print_json(out, &to_json::message(&job))
             } else {
                 writeln!(out, "{}: {}", job.id, names::job_state(job.state))?;
                 Ok(())
@@ -382,9 +382,9 @@ async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         print_json(
             out,
             &json!({
-                "job": to_json::job(&job),
+                "job": to_json::message(&job),
                 "created": submission.created,
-                "uploads": submission.uploads.iter().map(to_json::receipt).collect::<Vec<_>>(),
+                "uploads": submission.uploads.iter().map(to_json::message).collect::<Vec<_>>(),
             }),
         )?;
         return terminal_outcome(&job, args.wait);
@@ -432,7 +432,7 @@ pub(crate) async fn follow(
         match &mut view {
             Some(view) => view.apply(&event),
             None => {
-                serde_json::to_writer(&mut *out, &to_json::event(&event))?;
+                serde_json::to_writer(&mut *out, &to_json::message(&event))?;
                 writeln!(out)?;
                 out.flush()?;
             }
@@ -455,7 +455,10 @@ async fn list(args: ListArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     };
     let jobs = client.list_all(&filter, args.limit).await?;
     if args.connection.json() {
-        return print_json(out, &Value::Array(jobs.iter().map(to_json::job).collect()));
+        return print_json(
+            out,
+            &Value::Array(jobs.iter().map(to_json::message).collect()),
+        );
     }
     if jobs.is_empty() {
         writeln!(out, "no jobs")?;
@@ -535,10 +538,10 @@ async fn render(args: RenderArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     let client = args.connection.connect().await?;
     let task = client.render(&args.job, &spec).await?;
     if args.connection.json() {
-        let mut value = json!({"task": to_json::task(&task)});
+        let mut value = json!({"task": to_json::message(&task)});
         if args.wait {
             let job = client.wait(&args.job).await?;
-            value["job"] = to_json::job(&job);
+            value["job"] = to_json::message(&job);
             print_json(out, &value)?;
             return terminal_outcome(&job, true);
         }
@@ -566,7 +569,7 @@ async fn events(args: EventsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     while let Some(event) = events.next().await {
         let event = event?;
         if args.connection.json() {
-            serde_json::to_writer(&mut *out, &to_json::event(&event))?;
+            serde_json::to_writer(&mut *out, &to_json::message(&event))?;
             writeln!(out)?;
         } else {
             writeln!(out, "{}", describe_event(&event))?;
@@ -874,12 +877,16 @@ mod tests {
         }
         let submitted: Value = serde_json::from_str(&run_line(&submit).await.unwrap()).unwrap();
         assert_eq!(submitted["created"], true);
-        assert_eq!(submitted["job"]["state"], "queued");
+        // Proto JSON: the messages read back with the protocol's own JSON mapping.
+        let created: pb::Job = serde_json::from_value(submitted["job"].clone()).unwrap();
+        assert_eq!(created.state(), pb::JobState::Queued);
+        assert_eq!(submitted["job"]["state"], "JOB_STATE_QUEUED");
+        let overrides: Value = serde_json::from_str(&created.config_overrides_json).unwrap();
+        assert_eq!(overrides["nerf_pretrain.steps"], 10);
         assert_eq!(
-            submitted["job"]["config_overrides"]["nerf_pretrain.steps"],
-            10
+            submitted["uploads"][0]["kind"],
+            "UPLOAD_KIND_DATASET_ARCHIVE"
         );
-        assert_eq!(submitted["uploads"][0]["kind"], "dataset_archive");
         let job = submitted["job"]["id"].as_str().unwrap().to_string();
 
         let status: Value = serde_json::from_str(
@@ -888,8 +895,8 @@ mod tests {
                 .unwrap(),
         )
         .unwrap();
-        assert_eq!(status["tasks"][0]["stage"], "nerf_pretrain");
-        assert_eq!(status["tasks"][0]["state"], "ready");
+        assert_eq!(status["tasks"][0]["stage"], "STAGE_NERF_PRETRAIN");
+        assert_eq!(status["tasks"][0]["state"], "TASK_STATE_READY");
         let list: Value =
             serde_json::from_str(&run_line(&[&["list"][..], &common].concat()).await.unwrap())
                 .unwrap();
@@ -900,7 +907,7 @@ mod tests {
                 .unwrap(),
         )
         .unwrap();
-        assert_eq!(cancelled["state"], "cancelled");
+        assert_eq!(cancelled["state"], "JOB_STATE_CANCELLED");
         let events = run_line(&[&["events", &job][..], &common].concat())
             .await
             .unwrap();
@@ -913,8 +920,14 @@ mod tests {
                     .into()
             })
             .collect();
-        assert_eq!(kinds.first().map(String::as_str), Some("job_created"));
-        assert_eq!(kinds.last().map(String::as_str), Some("job_state"));
+        assert_eq!(
+            kinds.first().map(String::as_str),
+            Some("EVENT_KIND_JOB_CREATED")
+        );
+        assert_eq!(
+            kinds.last().map(String::as_str),
+            Some("EVENT_KIND_JOB_STATE")
+        );
         // `watch` of a cancelled job fails (exit status 1) after printing its events.
         let err = run_line(&[&["watch", &job][..], &common].concat())
             .await

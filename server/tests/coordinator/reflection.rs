@@ -55,7 +55,10 @@ async fn reflection_answers_v1_and_v1alpha_with_the_error_details() {
             "stylenerf.v1.ArtifactService",
             "grpc.health.v1.Health",
         ] {
-            assert!(services.iter().any(|s| s == service), "{service}: {services:?}");
+            assert!(
+                services.iter().any(|s| s == service),
+                "{service}: {services:?}"
+            );
         }
     }
     assert!(v1_files > 0 && alpha_files > 0, "{v1_files} {alpha_files}");
