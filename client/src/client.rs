@@ -302,6 +302,20 @@ impl Client {
             .into_inner())
     }
 
+    /// Deletes a finished job: its objects in the store, then its records. A running job must
+    /// be cancelled first ([`ClientError`](crate::ClientError) with FAILED_PRECONDITION).
+    pub async fn delete(&self, job_id: &str) -> Result<pb::DeleteJobResponse> {
+        Ok(self
+            .jobs
+            .clone()
+            .delete_job(pb::DeleteJobRequest {
+                job_id: job_id.to_string(),
+            })
+            .await
+            .map_err(self.status())?
+            .into_inner())
+    }
+
     /// Objects stored under `jobs/<job_id>/<prefix>`.
     pub async fn artifacts(&self, job_id: &str, prefix: &str) -> Result<Vec<pb::Artifact>> {
         Ok(self

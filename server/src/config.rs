@@ -50,6 +50,11 @@ pub struct CoordinatorConfig {
     pub backups_kept: usize,
     /// At start, if the database file does not exist, download the newest snapshot first.
     pub restore_from_backup: bool,
+    /// Finished jobs and uploads older than this are deleted (objects and rows); `None` keeps
+    /// everything.
+    pub retention: Option<Duration>,
+    /// How often the retention sweep runs.
+    pub retention_sweep_interval: Duration,
     /// Accepted preset names.
     pub presets: Vec<String>,
     pub limits: Limits,
@@ -148,6 +153,8 @@ impl CoordinatorConfig {
             worker_timeout: Duration::from_secs(60),
             drain_grace: Duration::ZERO,
             backup_interval: None,
+            retention: None,
+            retention_sweep_interval: Duration::from_secs(3600),
             backups_kept: 48,
             restore_from_backup: false,
             presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
@@ -225,6 +232,10 @@ pub struct CoordinatorArgs {
     /// If the database file does not exist, start from the newest snapshot in the store.
     #[arg(long, env = "STYLENERF_RESTORE_FROM_BACKUP")]
     pub restore_from_backup: bool,
+    /// Delete finished jobs (their objects and records) and uploads older than this many days,
+    /// checked hourly; 0 = keep everything [default: 0].
+    #[arg(long, env = "STYLENERF_RETENTION_DAYS")]
+    pub retention_days: Option<f64>,
     /// Accepted preset names, comma-separated [default: tiny,quick,standard,paper].
     #[arg(long, env = "STYLENERF_PRESETS", value_delimiter = ',')]
     pub presets: Option<Vec<String>>,
@@ -264,6 +275,7 @@ struct FileConfig {
     backup_every: Option<f64>,
     backups_kept: Option<usize>,
     restore_from_backup: Option<bool>,
+    retention_days: Option<f64>,
     presets: Option<Vec<String>>,
     max_dataset_mib: Option<u64>,
     max_style_mib: Option<u64>,
@@ -381,6 +393,15 @@ impl CoordinatorArgs {
         }
         config.restore_from_backup =
             self.restore_from_backup || file.restore_from_backup.unwrap_or(false);
+        let retention = seconds(
+            self.retention_days
+                .or(file.retention_days)
+                .map(|d| d * 86_400.0),
+            "retention_days",
+            Duration::ZERO,
+            true,
+        )?;
+        config.retention = (!retention.is_zero()).then_some(retention);
         if let Some(n) = self.max_attempts.or(file.max_attempts) {
             anyhow::ensure!(n >= 1, "max_attempts must be at least 1");
             config.max_attempts = n;

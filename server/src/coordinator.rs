@@ -152,6 +152,13 @@ impl Coordinator {
         }));
 
         let mut background = vec![tokio::spawn(reaper(shared.clone()))];
+        if let Some(keep) = config.retention {
+            background.push(tokio::spawn(crate::retention::run(
+                shared.clone(),
+                keep,
+                config.retention_sweep_interval,
+            )));
+        }
         if let Some(interval) = config.backup_interval {
             background.push(tokio::spawn(crate::backup::run(shared.clone(), interval)));
         }

@@ -18,6 +18,7 @@ mod inputs;
 mod jobs;
 pub mod metrics_http;
 mod model;
+mod retention;
 mod rpc_metrics;
 mod scheduler;
 mod state;

@@ -100,6 +100,10 @@ fn describe() {
     metrics::describe_counter!("stylenerf_leases_total", "Tasks leased, per stage");
     metrics::describe_counter!("stylenerf_jobs_created_total", "Jobs created");
     metrics::describe_counter!(
+        "stylenerf_jobs_deleted_total",
+        "Jobs deleted (DeleteJob or retention)"
+    );
+    metrics::describe_counter!(
         "stylenerf_tasks_finished_total",
         "Task attempts that ended, per stage and outcome"
     );

@@ -68,6 +68,9 @@ pub enum ClientCommand {
     List(ListArgs),
     /// Cancel a job.
     Cancel(CancelArgs),
+    /// Delete a finished job: its inputs, outputs and checkpoints in the store, then its record
+    /// (cancel a running job first).
+    Delete(JobArgs),
     /// Download a job's outputs into a folder.
     Fetch(FetchArgs),
     /// Render a trained job again with another camera path or style blend.
@@ -339,6 +342,22 @@ pub async fn execute(command: ClientCommand, out: &mut dyn Write) -> anyhow::Res
                 print_json(out, &to_json::message(&job))
             } else {
                 writeln!(out, "{}: {}", job.id, names::job_state(job.state))?;
+                Ok(())
+            }
+        }
+        ClientCommand::Delete(args) => {
+            let client = args.connection.connect().await?;
+            let deleted = client.delete(&args.job).await?;
+            if args.connection.json() {
+                print_json(out, &to_json::message(&deleted))
+            } else {
+                writeln!(
+                    out,
+                    "{}: deleted ({} objects, {})",
+                    args.job,
+                    deleted.deleted_objects,
+                    human_bytes(deleted.deleted_bytes)
+                )?;
                 Ok(())
             }
         }

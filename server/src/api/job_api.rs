@@ -554,6 +554,18 @@ impl JobService for JobApi {
         Ok(Response::new(job))
     }
 
+    async fn delete_job(
+        &self,
+        request: Request<pb::DeleteJobRequest>,
+    ) -> Result<Response<pb::DeleteJobResponse>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        let reply = crate::retention::delete_job(&self.shared, &caller, &req.job_id).await?;
+        tracing::info!(job = %req.job_id, by = %caller.name, objects = reply.deleted_objects,
+            bytes = reply.deleted_bytes, "job deleted");
+        Ok(Response::new(reply))
+    }
+
     async fn list_artifacts(
         &self,
         request: Request<pb::ListArtifactsRequest>,

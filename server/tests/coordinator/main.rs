@@ -10,6 +10,7 @@ mod metrics;
 mod progress;
 mod reflection;
 mod restart;
+mod retention;
 mod support;
 mod tls;
 mod uploads;
