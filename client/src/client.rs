@@ -316,6 +316,28 @@ impl Client {
             .into_inner())
     }
 
+    /// A signed URL any HTTP client can GET the object from without a token, valid for
+    /// `ttl_seconds` (0: the coordinator's default, an hour); needs a coordinator started with
+    /// `--http-listen`.
+    pub async fn artifact_url(
+        &self,
+        job_id: &str,
+        key: &str,
+        ttl_seconds: u32,
+    ) -> Result<pb::ArtifactUrl> {
+        Ok(self
+            .jobs
+            .clone()
+            .get_artifact_url(pb::GetArtifactUrlRequest {
+                job_id: job_id.to_string(),
+                key: key.to_string(),
+                ttl_seconds,
+            })
+            .await
+            .map_err(self.status())?
+            .into_inner())
+    }
+
     /// Objects stored under `jobs/<job_id>/<prefix>`.
     pub async fn artifacts(&self, job_id: &str, prefix: &str) -> Result<Vec<pb::Artifact>> {
         Ok(self

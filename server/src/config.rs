@@ -50,6 +50,13 @@ pub struct CoordinatorConfig {
     pub backups_kept: usize,
     /// At start, if the database file does not exist, download the newest snapshot first.
     pub restore_from_backup: bool,
+    /// HTTP download endpoint for signed artifact URLs (`GetArtifactUrl`); `None` = none.
+    pub http_listen: Option<SocketAddr>,
+    /// Base URL clients reach `http_listen` at (default `http://<bound address>`).
+    pub public_url: Option<String>,
+    /// Secret key of the URL signatures (at least 32 bytes); `None` = a random key per start,
+    /// so URLs stop working when the coordinator restarts.
+    pub url_signing_key: Option<Vec<u8>>,
     /// Finished jobs and uploads older than this are deleted (objects and rows); `None` keeps
     /// everything.
     pub retention: Option<Duration>,
@@ -153,6 +160,9 @@ impl CoordinatorConfig {
             worker_timeout: Duration::from_secs(60),
             drain_grace: Duration::ZERO,
             backup_interval: None,
+            http_listen: None,
+            public_url: None,
+            url_signing_key: None,
             retention: None,
             retention_sweep_interval: Duration::from_secs(3600),
             backups_kept: 48,
@@ -232,6 +242,18 @@ pub struct CoordinatorArgs {
     /// If the database file does not exist, start from the newest snapshot in the store.
     #[arg(long, env = "STYLENERF_RESTORE_FROM_BACKUP")]
     pub restore_from_backup: bool,
+    /// HTTP address of the download endpoint for signed artifact URLs (`GetArtifactUrl`,
+    /// `stylenerf url`), e.g. `0.0.0.0:8080`; unset = no HTTP downloads.
+    #[arg(long, env = "STYLENERF_HTTP_LISTEN")]
+    pub http_listen: Option<SocketAddr>,
+    /// Base URL clients reach the download endpoint at, e.g. `https://stylenerf.example.com`
+    /// behind a proxy [default: http://<--http-listen address>].
+    #[arg(long, env = "STYLENERF_PUBLIC_URL")]
+    pub public_url: Option<String>,
+    /// File holding the secret that signs download URLs (at least 32 bytes; keep it to keep
+    /// URLs valid across restarts) [default: a random secret per start].
+    #[arg(long, env = "STYLENERF_URL_SIGNING_KEY_FILE")]
+    pub url_signing_key_file: Option<PathBuf>,
     /// Delete finished jobs (their objects and records) and uploads older than this many days,
     /// checked hourly; 0 = keep everything [default: 0].
     #[arg(long, env = "STYLENERF_RETENTION_DAYS")]
@@ -276,6 +298,9 @@ struct FileConfig {
     backups_kept: Option<usize>,
     restore_from_backup: Option<bool>,
     retention_days: Option<f64>,
+    http_listen: Option<SocketAddr>,
+    public_url: Option<String>,
+    url_signing_key_file: Option<PathBuf>,
     presets: Option<Vec<String>>,
     max_dataset_mib: Option<u64>,
     max_style_mib: Option<u64>,
@@ -402,6 +427,13 @@ impl CoordinatorArgs {
             true,
         )?;
         config.retention = (!retention.is_zero()).then_some(retention);
+        config.http_listen = self.http_listen.or(file.http_listen);
+        config.public_url = self.public_url.or(file.public_url);
+        if let Some(path) = self.url_signing_key_file.or(file.url_signing_key_file) {
+            let key = std::fs::read(&path)
+                .with_context(|| format!("reading the URL signing key {}", path.display()))?;
+            config.url_signing_key = Some(key);
+        }
         if let Some(n) = self.max_attempts.or(file.max_attempts) {
             anyhow::ensure!(n >= 1, "max_attempts must be at least 1");
             config.max_attempts = n;

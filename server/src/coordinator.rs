@@ -74,6 +74,29 @@ impl Coordinator {
         let (stop, stop_rx) = watch::channel(false);
         let (events, _) = broadcast::channel(4096);
         let writer = Writer::spawn(db.write.clone(), events.clone());
+        // The download endpoint is bound first: its address is the default public URL.
+        let downloads = match config.http_listen {
+            Some(addr) => {
+                let listener = tokio::net::TcpListener::bind(addr)
+                    .await
+                    .map_err(|e| anyhow::anyhow!("--http-listen {addr}: {e}"))?;
+                let signer = match &config.url_signing_key {
+                    Some(key) => crate::http_download::UrlSigner::new(key)?,
+                    None => crate::http_download::UrlSigner::random()?,
+                };
+                let public_url = config
+                    .public_url
+                    .clone()
+                    .unwrap_or_else(|| format!("http://{}", listener.local_addr().unwrap_or(addr)))
+                    .trim_end_matches('/')
+                    .to_string();
+                Some((
+                    listener,
+                    crate::http_download::Downloads { signer, public_url },
+                ))
+            }
+            None => None,
+        };
         let shared = Arc::new(Shared {
             db,
             writer,
@@ -85,6 +108,7 @@ impl Coordinator {
             next_expiry_check: AtomicI64::new(0),
             validations: Semaphore::new(crate::inputs::CONCURRENT_VALIDATIONS),
             worker_owners: Default::default(),
+            downloads: downloads.as_ref().map(|(_, d)| d.clone()),
         });
 
         let auth = Authenticator::new(&config.auth);
@@ -152,6 +176,15 @@ impl Coordinator {
         }));
 
         let mut background = vec![tokio::spawn(reaper(shared.clone()))];
+        if let Some((listener, endpoint)) = downloads {
+            tracing::info!(public_url = %endpoint.public_url, "HTTP downloads");
+            background.push(crate::http_download::serve(
+                listener,
+                shared.clone(),
+                endpoint.signer,
+                stop_rx.clone(),
+            ));
+        }
         if let Some(keep) = config.retention {
             background.push(tokio::spawn(crate::retention::run(
                 shared.clone(),

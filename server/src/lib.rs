@@ -14,6 +14,7 @@ mod coordinator;
 mod db;
 pub mod errors;
 mod events;
+mod http_download;
 mod inputs;
 mod jobs;
 pub mod metrics_http;

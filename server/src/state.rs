@@ -33,6 +33,8 @@ pub struct Shared {
     /// Worker id → the principal that registered it. An id's owner never changes, so this
     /// cache of `workers.owner` spares every heartbeat a database read.
     pub worker_owners: Mutex<HashMap<String, String>>,
+    /// The HTTP download endpoint, when the coordinator serves one (`--http-listen`).
+    pub downloads: Option<crate::http_download::Downloads>,
 }
 
 impl Shared {

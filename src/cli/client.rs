@@ -71,6 +71,9 @@ pub enum ClientCommand {
     /// Delete a finished job: its inputs, outputs and checkpoints in the store, then its record
     /// (cancel a running job first).
     Delete(JobArgs),
+    /// Print a signed URL from which a browser or any HTTP client can download one of a job's
+    /// objects without a token, until it expires (the coordinator needs --http-listen).
+    Url(UrlArgs),
     /// Download a job's outputs into a folder.
     Fetch(FetchArgs),
     /// Render a trained job again with another camera path or style blend.
@@ -204,6 +207,21 @@ pub struct FetchArgs {
     /// Also download training checkpoints.
     #[arg(long)]
     pub checkpoints: bool,
+    #[command(flatten)]
+    pub connection: ConnectionArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct UrlArgs {
+    /// Job id.
+    pub job: String,
+    /// Object key, as `stylenerf fetch` or `ListArtifacts` name it, e.g.
+    /// `jobs/<job>/render_stylized/style-0/animation.gif`; a key without the `jobs/<job>/`
+    /// prefix is taken relative to the job.
+    pub key: String,
+    /// Seconds the URL works (at most 7 days) [default: the coordinator's, an hour].
+    #[arg(long, default_value_t = 0)]
+    pub ttl: u32,
     #[command(flatten)]
     pub connection: ConnectionArgs,
 }
@@ -358,6 +376,22 @@ pub async fn execute(command: ClientCommand, out: &mut dyn Write) -> anyhow::Res
                     deleted.deleted_objects,
                     human_bytes(deleted.deleted_bytes)
                 )?;
+                Ok(())
+            }
+        }
+        ClientCommand::Url(args) => {
+            let client = args.connection.connect().await?;
+            let prefix = format!("jobs/{}/", args.job);
+            let key = if args.key.starts_with(&prefix) {
+                args.key.clone()
+            } else {
+                format!("{prefix}{}", args.key)
+            };
+            let url = client.artifact_url(&args.job, &key, args.ttl).await?;
+            if args.connection.json() {
+                print_json(out, &to_json::message(&url))
+            } else {
+                writeln!(out, "{}", url.url)?;
                 Ok(())
             }
         }

@@ -619,6 +619,52 @@ impl JobService for JobApi {
         Ok(Response::new(Box::pin(stream)))
     }
 
+    async fn get_artifact_url(
+        &self,
+        request: Request<pb::GetArtifactUrlRequest>,
+    ) -> Result<Response<pb::ArtifactUrl>, Status> {
+        const DEFAULT_TTL: u32 = 3600;
+        const MAX_TTL: u32 = 7 * 86_400;
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
+        check_key("key", &req.key)?;
+        if !req.key.starts_with(&format!("jobs/{}/", req.job_id)) {
+            return Err(invalid(
+                "key",
+                format!("must lie under jobs/{}/", req.job_id),
+            ));
+        }
+        if req.ttl_seconds > MAX_TTL {
+            return Err(invalid(
+                "ttl_seconds",
+                format!("{} is more than 7 days ({MAX_TTL})", req.ttl_seconds),
+            ));
+        }
+        let Some(downloads) = &self.shared.downloads else {
+            return Err(Status::failed_precondition(
+                "this coordinator serves no HTTP downloads (start it with --http-listen); \
+                 use DownloadArtifact",
+            ));
+        };
+        let size = self.shared.storage.size(&req.key).await?;
+        let ttl = if req.ttl_seconds == 0 {
+            DEFAULT_TTL
+        } else {
+            req.ttl_seconds
+        };
+        let expires_at_ms = crate::model::now_ms() + i64::from(ttl) * 1000;
+        Ok(Response::new(pb::ArtifactUrl {
+            url: format!(
+                "{}{}",
+                downloads.public_url,
+                downloads.signer.path(&req.key, expires_at_ms)
+            ),
+            expires_at_ms,
+            size,
+        }))
+    }
+
     async fn render_job(
         &self,
         request: Request<pb::RenderJobRequest>,

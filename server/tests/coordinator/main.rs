@@ -3,6 +3,7 @@
 //! authenticated clients, test inputs and a fake worker.
 
 mod auth;
+mod downloads;
 mod hostile;
 mod leases;
 mod lifecycle;
