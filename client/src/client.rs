@@ -172,6 +172,7 @@ impl Client {
             requirements: Some(spec.requirements.clone()),
             camera_path: spec.camera_path.clone(),
             style_blend: spec.style_blend.clone(),
+            webhook: spec.webhook.clone(),
         };
         let response = self.create_job(request).await?;
         let job = response
@@ -181,6 +182,7 @@ impl Client {
             job,
             created: response.created,
             uploads,
+            webhook_secret: response.webhook_secret,
         })
     }
 
@@ -336,6 +338,20 @@ impl Client {
             .await
             .map_err(self.status())?
             .into_inner())
+    }
+
+    /// The deliveries of the job's webhook events, oldest first.
+    pub async fn webhook_deliveries(&self, job_id: &str) -> Result<Vec<pb::WebhookDelivery>> {
+        Ok(self
+            .jobs
+            .clone()
+            .list_webhook_deliveries(pb::ListWebhookDeliveriesRequest {
+                job_id: job_id.to_string(),
+            })
+            .await
+            .map_err(self.status())?
+            .into_inner()
+            .deliveries)
     }
 
     /// Objects stored under `jobs/<job_id>/<prefix>`.

@@ -59,6 +59,8 @@ pub struct JobSpec {
     pub camera_path: Option<pb::CameraPath>,
     /// Style blend of the final render (empty = every style in turn).
     pub style_blend: Vec<pb::StyleWeight>,
+    /// Where the coordinator POSTs the job's events (signed; see `Submission::webhook_secret`).
+    pub webhook: Option<pb::Webhook>,
 }
 
 impl JobSpec {
@@ -116,6 +118,9 @@ pub struct Submission {
     pub created: bool,
     /// Receipts of the inputs uploaded for this submission (dataset first, then styles).
     pub uploads: Vec<pb::UploadReceipt>,
+    /// The secret that signs the job's webhook deliveries (empty without a webhook, or when an
+    /// existing job was returned): keep it to verify them.
+    pub webhook_secret: String,
 }
 
 /// Options of `Client::watch`.

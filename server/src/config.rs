@@ -57,6 +57,8 @@ pub struct CoordinatorConfig {
     /// Secret key of the URL signatures (at least 32 bytes); `None` = a random key per start,
     /// so URLs stop working when the coordinator restarts.
     pub url_signing_key: Option<Vec<u8>>,
+    /// Let webhooks reach loopback and private addresses (development, in-cluster receivers).
+    pub webhook_allow_private: bool,
     /// Finished jobs and uploads older than this are deleted (objects and rows); `None` keeps
     /// everything.
     pub retention: Option<Duration>,
@@ -163,6 +165,7 @@ impl CoordinatorConfig {
             http_listen: None,
             public_url: None,
             url_signing_key: None,
+            webhook_allow_private: false,
             retention: None,
             retention_sweep_interval: Duration::from_secs(3600),
             backups_kept: 48,
@@ -254,6 +257,10 @@ pub struct CoordinatorArgs {
     /// URLs valid across restarts) [default: a random secret per start].
     #[arg(long, env = "STYLENERF_URL_SIGNING_KEY_FILE")]
     pub url_signing_key_file: Option<PathBuf>,
+    /// Let job webhooks reach loopback, private and link-local addresses (refused by default:
+    /// a webhook is a request the coordinator makes for a client).
+    #[arg(long, env = "STYLENERF_WEBHOOK_ALLOW_PRIVATE")]
+    pub webhook_allow_private: bool,
     /// Delete finished jobs (their objects and records) and uploads older than this many days,
     /// checked hourly; 0 = keep everything [default: 0].
     #[arg(long, env = "STYLENERF_RETENTION_DAYS")]
@@ -298,6 +305,7 @@ struct FileConfig {
     backups_kept: Option<usize>,
     restore_from_backup: Option<bool>,
     retention_days: Option<f64>,
+    webhook_allow_private: Option<bool>,
     http_listen: Option<SocketAddr>,
     public_url: Option<String>,
     url_signing_key_file: Option<PathBuf>,
@@ -427,6 +435,8 @@ impl CoordinatorArgs {
             true,
         )?;
         config.retention = (!retention.is_zero()).then_some(retention);
+        config.webhook_allow_private =
+            self.webhook_allow_private || file.webhook_allow_private.unwrap_or(false);
         config.http_listen = self.http_listen.or(file.http_listen);
         config.public_url = self.public_url.or(file.public_url);
         if let Some(path) = self.url_signing_key_file.or(file.url_signing_key_file) {

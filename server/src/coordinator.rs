@@ -175,7 +175,10 @@ impl Coordinator {
             let _ = server_stop.wait_for(|stop| *stop).await;
         }));
 
-        let mut background = vec![tokio::spawn(reaper(shared.clone()))];
+        let mut background = vec![
+            tokio::spawn(reaper(shared.clone())),
+            tokio::spawn(crate::webhooks::run(shared.clone())),
+        ];
         if let Some((listener, endpoint)) = downloads {
             tracing::info!(public_url = %endpoint.public_url, "HTTP downloads");
             background.push(crate::http_download::serve(

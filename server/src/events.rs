@@ -103,6 +103,9 @@ impl EventBatch {
             // Rows are numbered in VALUES order; RETURNING order is unspecified.
             let mut seqs: Vec<i64> = insert.build_query_scalar().fetch_all(&mut *conn).await?;
             seqs.sort_unstable();
+            if let (Some(first), Some(last)) = (seqs.first(), seqs.last()) {
+                crate::webhooks::enqueue(conn, *first, *last).await?;
+            }
             for (row, seq) in chunk.iter().zip(seqs) {
                 self.events.push(to_pb(EventRow { seq, ..row.clone() }));
             }
@@ -166,14 +169,19 @@ pub fn publish(sender: &tokio::sync::broadcast::Sender<pb::Event>, batch: EventB
     }
 }
 
-pub fn to_pb(row: EventRow) -> pb::Event {
-    let kind = match row.kind.as_str() {
+/// The protocol enum of a stored event kind.
+pub fn kind_pb(kind: &str) -> pb::EventKind {
+    match kind {
         JOB_CREATED => pb::EventKind::JobCreated,
         JOB_STATE => pb::EventKind::JobState,
         TASK_STATE => pb::EventKind::TaskState,
         TASK_PROGRESS => pb::EventKind::TaskProgress,
         _ => pb::EventKind::Unspecified,
-    };
+    }
+}
+
+pub fn to_pb(row: EventRow) -> pb::Event {
+    let kind = kind_pb(&row.kind);
     pb::Event {
         seq: row.seq as u64,
         job_id: row.job_id,

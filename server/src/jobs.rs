@@ -76,6 +76,8 @@ pub struct NewJob {
     pub render: serde_json::Map<String, serde_json::Value>,
     /// The message of the `job_created` event (what the job waits for, when it may wait long).
     pub note: String,
+    /// Where the job's events are posted, if anywhere.
+    pub webhook: Option<crate::webhooks::NewWebhook>,
 }
 
 /// The job of `owner` with this idempotency key, if any.
@@ -150,6 +152,9 @@ pub async fn insert_job(
     .rows_affected();
     if inserted == 0 {
         return Ok(false);
+    }
+    if let Some(webhook) = &job.webhook {
+        crate::webhooks::subscribe(conn, &job.id, webhook).await?;
     }
     batch.push(NewEvent::job(
         &job.id,

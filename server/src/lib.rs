@@ -25,6 +25,7 @@ mod scheduler;
 mod state;
 pub mod storage;
 pub mod validation;
+mod webhooks;
 mod writer;
 
 pub use api::job_api::CAMERA_PATH_KINDS;

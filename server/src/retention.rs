@@ -62,6 +62,8 @@ pub async fn delete_job(
          OR depends_on IN (SELECT id FROM tasks WHERE job_id = ?1)",
         "DELETE FROM artifacts WHERE job_id = ?1",
         "DELETE FROM events WHERE job_id = ?1",
+        "DELETE FROM webhook_deliveries WHERE job_id = ?1",
+        "DELETE FROM job_webhooks WHERE job_id = ?1",
         "DELETE FROM tasks WHERE job_id = ?1",
         "DELETE FROM jobs WHERE id = ?1",
     ] {

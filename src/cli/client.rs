@@ -58,7 +58,7 @@ impl ConnectionArgs {
 #[derive(Debug, Subcommand)]
 pub enum ClientCommand {
     /// Upload a scene folder and style images and create a job; prints the job id.
-    Submit(SubmitArgs),
+    Submit(Box<SubmitArgs>),
     /// Show a job and its stages.
     Status(JobArgs),
     /// Follow a job with a progress bar per stage until it ends (exit status 1 when it fails
@@ -74,6 +74,8 @@ pub enum ClientCommand {
     /// Print a signed URL from which a browser or any HTTP client can download one of a job's
     /// objects without a token, until it expires (the coordinator needs --http-listen).
     Url(UrlArgs),
+    /// The deliveries of a job's webhook: state, attempts, last HTTP status and error.
+    Webhooks(JobArgs),
     /// Download a job's outputs into a folder.
     Fetch(FetchArgs),
     /// Render a trained job again with another camera path or style blend.
@@ -115,6 +117,14 @@ pub struct SubmitArgs {
     pub memory_mib: Option<u64>,
     #[command(flatten)]
     pub render: RenderOptions,
+    /// POST the job's events to this http(s) URL, signed (Standard Webhooks); the secret is
+    /// printed once.
+    #[arg(long, value_name = "URL")]
+    pub webhook: Option<String>,
+    /// Events the webhook gets (repeatable): job_created, job_state, task_state,
+    /// task_progress [default: job_state].
+    #[arg(long = "webhook-event", value_name = "KIND", value_parser = parse_event_kind)]
+    pub webhook_events: Vec<pb::EventKind>,
     /// Follow the job until it ends (like `stylenerf watch`).
     #[arg(long)]
     pub wait: bool,
@@ -267,6 +277,14 @@ pub struct EventsArgs {
     pub connection: ConnectionArgs,
 }
 
+fn parse_event_kind(text: &str) -> Result<pb::EventKind, String> {
+    pb::EventKind::from_str_name(&format!("EVENT_KIND_{}", text.to_ascii_uppercase()))
+        .filter(|k| *k != pb::EventKind::Unspecified)
+        .ok_or_else(|| {
+            format!("{text:?}: expected job_created, job_state, task_state or task_progress")
+        })
+}
+
 fn parse_state(text: &str) -> Result<pb::JobState, String> {
     names::parse_job_state(text).ok_or_else(|| {
         format!("unknown job state {text:?} (queued, running, succeeded, failed, cancelled)")
@@ -338,7 +356,7 @@ pub fn run(command: ClientCommand) -> anyhow::Result<()> {
 /// Runs one client command, writing its result to `out` (progress goes to stderr).
 pub async fn execute(command: ClientCommand, out: &mut dyn Write) -> anyhow::Result<()> {
     match command {
-        ClientCommand::Submit(args) => submit(args, out).await,
+        ClientCommand::Submit(args) => submit(*args, out).await,
         ClientCommand::Status(args) => {
             let client = args.connection.connect().await?;
             let job = client.get(&args.job).await?;
@@ -395,6 +413,35 @@ pub async fn execute(command: ClientCommand, out: &mut dyn Write) -> anyhow::Res
                 Ok(())
             }
         }
+        ClientCommand::Webhooks(args) => {
+            let client = args.connection.connect().await?;
+            let deliveries = client.webhook_deliveries(&args.job).await?;
+            if args.connection.json() {
+                let all: Vec<Value> = deliveries.iter().map(to_json::message).collect();
+                return print_json(out, &Value::Array(all));
+            }
+            for d in &deliveries {
+                let status = match d.last_status {
+                    0 => String::new(),
+                    s => format!(" HTTP {s}"),
+                };
+                let error = if d.last_error.is_empty() || d.state == "delivered" {
+                    String::new()
+                } else {
+                    format!(": {}", d.last_error)
+                };
+                writeln!(
+                    out,
+                    "#{} event {} {} {} after {} attempt(s){status}{error}",
+                    d.id,
+                    d.event_seq,
+                    names::event_kind(d.kind),
+                    d.state,
+                    d.attempts
+                )?;
+            }
+            Ok(())
+        }
         ClientCommand::Fetch(args) => fetch(args, out).await,
         ClientCommand::Render(args) => render(args, out).await,
         ClientCommand::Events(args) => events(args, out).await,
@@ -423,6 +470,10 @@ async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         },
         camera_path: args.render.camera_path(),
         style_blend: args.render.style_blend()?,
+        webhook: args.webhook.as_ref().map(|url| pb::Webhook {
+            url: url.clone(),
+            events: args.webhook_events.iter().map(|k| *k as i32).collect(),
+        }),
     };
     let client = args.connection.connect().await?;
     let submission = client.submit(&spec).await?;
@@ -438,6 +489,7 @@ async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
                 "job": to_json::message(&job),
                 "created": submission.created,
                 "uploads": submission.uploads.iter().map(to_json::message).collect::<Vec<_>>(),
+                "webhook_secret": submission.webhook_secret,
             }),
         )?;
         return terminal_outcome(&job, args.wait);
@@ -447,6 +499,12 @@ async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     }
     if !submission.created {
         eprintln!("an existing job has this idempotency key");
+    }
+    if !submission.webhook_secret.is_empty() {
+        eprintln!(
+            "webhook secret (verifies the deliveries; shown once): {}",
+            submission.webhook_secret
+        );
     }
     writeln!(out, "{job_id}")?;
     out.flush()?;

@@ -232,6 +232,12 @@ impl JobApi {
             req.styles.len(),
             &mut violations,
         );
+        let webhook = crate::webhooks::validate(
+            req.webhook.as_ref(),
+            shared.config.webhook_allow_private,
+            &mut violations,
+        )
+        .await;
         if !violations.is_empty() {
             return Err(invalid_all(violations));
         }
@@ -244,6 +250,7 @@ impl JobApi {
                 return Ok(pb::CreateJobResponse {
                     job: Some(jobs::get_job(shared, caller, &job.id).await?),
                     created: false,
+                    webhook_secret: String::new(),
                 });
             }
         }
@@ -299,7 +306,13 @@ impl JobApi {
             idempotency_key: idempotency_key.clone(),
             render,
             note: note.to_string(),
+            webhook,
         };
+        let webhook_secret = new_job
+            .webhook
+            .as_ref()
+            .map(|w| w.secret.clone())
+            .unwrap_or_default();
         let max_attempts = shared.config.max_attempts;
         let new_job = Arc::new(new_job);
         let created = shared
@@ -325,6 +338,11 @@ impl JobApi {
         Ok(pb::CreateJobResponse {
             job: Some(jobs::get_job(shared, caller, &id).await?),
             created,
+            webhook_secret: if created {
+                webhook_secret
+            } else {
+                String::new()
+            },
         })
     }
 }
@@ -564,6 +582,19 @@ impl JobService for JobApi {
         tracing::info!(job = %req.job_id, by = %caller.name, objects = reply.deleted_objects,
             bytes = reply.deleted_bytes, "job deleted");
         Ok(Response::new(reply))
+    }
+
+    async fn list_webhook_deliveries(
+        &self,
+        request: Request<pb::ListWebhookDeliveriesRequest>,
+    ) -> Result<Response<pb::ListWebhookDeliveriesResponse>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
+        let deliveries = crate::webhooks::deliveries(&self.shared, &req.job_id).await?;
+        Ok(Response::new(pb::ListWebhookDeliveriesResponse {
+            deliveries,
+        }))
     }
 
     async fn list_artifacts(

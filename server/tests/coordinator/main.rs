@@ -15,3 +15,4 @@ mod retention;
 mod support;
 mod tls;
 mod uploads;
+mod webhooks;
