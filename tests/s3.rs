@@ -5,7 +5,7 @@
 //! must resume from a checkpoint read back from S3.
 //!
 //! Without `moto_server` (on `PATH`, or named by `STYLENERF_MOTO_SERVER`) the test says so
-//! and passes, unless `STYLENERF_REQUIRE_S3` is set, as `.ci/run` does.
+//! and passes, unless `STYLENERF_REQUIRE_TEST_TOOLS` is set, as `.ci/run` does.
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
@@ -83,8 +83,8 @@ fn start_moto(program: &PathBuf) -> Moto {
 fn a_job_runs_and_resumes_with_every_artifact_in_s3() {
     let Some(program) = moto_server() else {
         assert!(
-            std::env::var_os("STYLENERF_REQUIRE_S3").is_none(),
-            "STYLENERF_REQUIRE_S3 is set but moto_server was not found: \
+            std::env::var_os("STYLENERF_REQUIRE_TEST_TOOLS").is_none(),
+            "STYLENERF_REQUIRE_TEST_TOOLS is set but moto_server was not found: \
              pip install 'moto[server]', or set STYLENERF_MOTO_SERVER"
         );
         eprintln!("skipped: moto_server not found (pip install 'moto[server]'; .ci/run does)");
