@@ -273,6 +273,22 @@ impl Client {
         crate::watch::watch(self.clone(), job_id.to_string(), options).await
     }
 
+    /// Every event of all the caller's jobs after `options.after_seq`, then live, until the
+    /// stream is dropped (`WatchJobs`). Resume after a disconnect with the last `seq` seen.
+    pub async fn watch_all(&self, options: WatchOptions) -> Result<tonic::Streaming<pb::Event>> {
+        Ok(self
+            .jobs
+            .clone()
+            .watch_jobs(pb::WatchJobsRequest {
+                after_seq: options.after_seq,
+                skip_progress: options.skip_progress,
+                owner: String::new(),
+            })
+            .await
+            .map_err(self.status())?
+            .into_inner())
+    }
+
     /// Waits until the job is terminal and returns it (state changes only, no progress).
     pub async fn wait(&self, job_id: &str) -> Result<pb::Job> {
         let mut events = self

@@ -200,18 +200,48 @@ pub fn to_pb(row: EventRow) -> pb::Event {
 /// Events of a job after `after_seq`, oldest first, at most `limit`.
 pub async fn read_after(
     pool: &sqlx::SqlitePool,
-    job_id: &str,
+    scope: &Scope,
     after_seq: i64,
     limit: i64,
 ) -> Result<Vec<pb::Event>, sqlx::Error> {
-    let rows: Vec<EventRow> = sqlx::query_as(
-        "SELECT seq, job_id, at, kind, task_id, stage, job_state, task_state, attempt, progress, \
-         message FROM events WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?",
-    )
-    .bind(job_id)
-    .bind(after_seq)
-    .bind(limit)
-    .fetch_all(pool)
-    .await?;
+    let query = match scope {
+        Scope::Job(_) => {
+            "SELECT e.seq, e.job_id, e.at, e.kind, e.task_id, e.stage, e.job_state, e.task_state, \
+             e.attempt, e.progress, e.message FROM events e \
+             WHERE e.job_id = ? AND e.seq > ? ORDER BY e.seq LIMIT ?"
+        }
+        Scope::Owner(_) => {
+            "SELECT e.seq, e.job_id, e.at, e.kind, e.task_id, e.stage, e.job_state, e.task_state, \
+             e.attempt, e.progress, e.message FROM events e JOIN jobs j ON j.id = e.job_id \
+             WHERE j.owner = ? AND e.seq > ? ORDER BY e.seq LIMIT ?"
+        }
+        Scope::All => {
+            "SELECT e.seq, e.job_id, e.at, e.kind, e.task_id, e.stage, e.job_state, e.task_state, \
+             e.attempt, e.progress, e.message FROM events e \
+             WHERE ? = '' AND e.seq > ? ORDER BY e.seq LIMIT ?"
+        }
+    };
+    let key = match scope {
+        Scope::Job(id) => id.as_str(),
+        Scope::Owner(owner) => owner.as_str(),
+        Scope::All => "",
+    };
+    let rows: Vec<EventRow> = sqlx::query_as(query)
+        .bind(key)
+        .bind(after_seq)
+        .bind(limit)
+        .fetch_all(pool)
+        .await?;
     Ok(rows.into_iter().map(to_pb).collect())
+}
+
+/// Whose events a watch follows.
+#[derive(Debug, Clone)]
+pub enum Scope {
+    /// One job (the stream ends with it).
+    Job(String),
+    /// Every job of one owner.
+    Owner(String),
+    /// Every job (admins).
+    All,
 }

@@ -3,7 +3,7 @@
 
 use crate::auth::{require, Principal, Role, CLIENT_ROLES};
 use crate::errors::{internal, invalid, invalid_all, Violation};
-use crate::events::read_after;
+use crate::events::{read_after, Scope};
 use crate::inputs::{receive_upload, resolve_input, InputKind};
 use crate::jobs::{self, NewJob};
 use crate::model::{job_state, job_state_from_pb, now_ms};
@@ -347,10 +347,11 @@ impl JobApi {
     }
 }
 
-/// Streams a job's events after `after_seq`, then live ones, until the job is terminal.
+/// Streams the events of `scope` after `after_seq`, then live ones: for one job until it is
+/// terminal, for an owner's (or every) job until the receiver goes or the coordinator stops.
 async fn watch(
     shared: Arc<Shared>,
-    job_id: String,
+    scope: Scope,
     after_seq: i64,
     skip_progress: bool,
     tx: mpsc::Sender<Result<pb::Event, Status>>,
@@ -360,7 +361,8 @@ async fn watch(
     let mut last = after_seq;
     let wanted = |e: &pb::Event| !(skip_progress && e.kind == pb::EventKind::TaskProgress as i32);
     let is_end = |e: &pb::Event| {
-        e.kind == pb::EventKind::JobState as i32
+        matches!(scope, Scope::Job(_))
+            && e.kind == pb::EventKind::JobState as i32
             && matches!(
                 pb::JobState::try_from(e.job_state),
                 Ok(pb::JobState::Succeeded | pb::JobState::Failed | pb::JobState::Cancelled)
@@ -369,13 +371,13 @@ async fn watch(
     // Replays the log after `last`; returns false when the receiver is gone.
     async fn replay(
         shared: &Shared,
-        job_id: &str,
+        scope: &Scope,
         last: &mut i64,
         wanted: &impl Fn(&pb::Event) -> bool,
         tx: &mpsc::Sender<Result<pb::Event, Status>>,
     ) -> bool {
         loop {
-            let page = match read_after(&shared.db.read, job_id, *last, 500).await {
+            let page = match read_after(&shared.db.read, scope, *last, 500).await {
                 Ok(page) => page,
                 Err(e) => {
                     let _ = tx.send(Err(internal(e))).await;
@@ -394,27 +396,53 @@ async fn watch(
             }
         }
     }
-    if !replay(&shared, &job_id, &mut last, &wanted, &tx).await {
+    if !replay(&shared, &scope, &mut last, &wanted, &tx).await {
         return;
     }
-    let state: Option<String> = sqlx::query_scalar("SELECT state FROM jobs WHERE id = ?")
-        .bind(&job_id)
-        .fetch_optional(&shared.db.read)
-        .await
-        .ok()
-        .flatten();
-    if state.as_deref().is_some_and(job_state::is_terminal) {
-        // Anything committed between the replay and the state check.
-        replay(&shared, &job_id, &mut last, &wanted, &tx).await;
-        return;
+    if let Scope::Job(job_id) = &scope {
+        let state: Option<String> = sqlx::query_scalar("SELECT state FROM jobs WHERE id = ?")
+            .bind(job_id)
+            .fetch_optional(&shared.db.read)
+            .await
+            .ok()
+            .flatten();
+        if state.as_deref().is_some_and(job_state::is_terminal) {
+            // Anything committed between the replay and the state check.
+            replay(&shared, &scope, &mut last, &wanted, &tx).await;
+            return;
+        }
     }
+    // Whether a job is in scope, by id (an owner's jobs are looked up once each).
+    let mut in_scope: std::collections::HashMap<String, bool> = Default::default();
     loop {
         tokio::select! {
             received = live.recv() => match received {
                 Ok(event) => {
                     // Seq 0: a live-only progress update (not stored, so never replayed).
                     let live_only = event.seq == 0;
-                    if event.job_id != job_id || (!live_only && event.seq as i64 <= last) {
+                    if !live_only && event.seq as i64 <= last {
+                        continue;
+                    }
+                    let visible = match &scope {
+                        Scope::Job(id) => event.job_id == *id,
+                        Scope::All => true,
+                        Scope::Owner(owner) => match in_scope.get(&event.job_id) {
+                            Some(visible) => *visible,
+                            None => {
+                                let job_owner: Option<String> =
+                                    sqlx::query_scalar("SELECT owner FROM jobs WHERE id = ?")
+                                        .bind(&event.job_id)
+                                        .fetch_optional(&shared.db.read)
+                                        .await
+                                        .ok()
+                                        .flatten();
+                                let visible = job_owner.as_deref() == Some(owner.as_str());
+                                in_scope.insert(event.job_id.clone(), visible);
+                                visible
+                            }
+                        },
+                    };
+                    if !visible {
                         continue;
                     }
                     if !live_only {
@@ -429,7 +457,7 @@ async fn watch(
                     }
                 }
                 Err(broadcast::error::RecvError::Lagged(_)) => {
-                    if !replay(&shared, &job_id, &mut last, &wanted, &tx).await {
+                    if !replay(&shared, &scope, &mut last, &wanted, &tx).await {
                         return;
                     }
                 }
@@ -544,7 +572,36 @@ impl JobService for JobApi {
         let (tx, rx) = mpsc::channel(64);
         tokio::spawn(watch(
             self.shared.clone(),
-            req.job_id,
+            Scope::Job(req.job_id),
+            req.after_seq.min(i64::MAX as u64) as i64,
+            req.skip_progress,
+            tx,
+        ));
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    type WatchJobsStream = BoxStream<pb::Event>;
+
+    async fn watch_jobs(
+        &self,
+        request: Request<pb::WatchJobsRequest>,
+    ) -> Result<Response<Self::WatchJobsStream>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let req = request.into_inner();
+        let scope = match (caller.role, req.owner.is_empty()) {
+            (Role::Admin, true) => Scope::All,
+            (Role::Admin, false) => Scope::Owner(req.owner),
+            _ if req.owner.is_empty() || req.owner == caller.name => Scope::Owner(caller.name),
+            _ => {
+                return Err(Status::permission_denied(
+                    "only admins may watch another owner's jobs",
+                ))
+            }
+        };
+        let (tx, rx) = mpsc::channel(64);
+        tokio::spawn(watch(
+            self.shared.clone(),
+            scope,
             req.after_seq.min(i64::MAX as u64) as i64,
             req.skip_progress,
             tx,

@@ -15,4 +15,5 @@ mod retention;
 mod support;
 mod tls;
 mod uploads;
+mod watch_all;
 mod webhooks;
