@@ -173,6 +173,7 @@ impl Client {
             camera_path: spec.camera_path.clone(),
             style_blend: spec.style_blend.clone(),
             webhook: spec.webhook.clone(),
+            metadata: spec.metadata.clone(),
         };
         let response = self.create_job(request).await?;
         let job = response
@@ -221,6 +222,7 @@ impl Client {
                 page_size: filter.page_size,
                 page_token: filter.page_token.clone().unwrap_or_default(),
                 include_tasks: filter.include_tasks,
+                metadata: filter.metadata.clone(),
             })
             .await
             .map_err(self.status())?

@@ -61,6 +61,8 @@ pub struct JobSpec {
     pub style_blend: Vec<pb::StyleWeight>,
     /// Where the coordinator POSTs the job's events (signed; see `Submission::webhook_secret`).
     pub webhook: Option<pb::Webhook>,
+    /// The integrator's key-value pairs, kept with the job and filterable in `list`.
+    pub metadata: std::collections::HashMap<String, String>,
 }
 
 impl JobSpec {
@@ -100,6 +102,8 @@ pub struct ListFilter {
     pub page_token: Option<String>,
     /// Include each job's stage tasks.
     pub include_tasks: bool,
+    /// Only jobs whose metadata holds every one of these pairs.
+    pub metadata: std::collections::HashMap<String, String>,
 }
 
 /// One page of jobs, newest first.

@@ -34,6 +34,8 @@ pub struct JobRow {
     pub created_at: i64,
     pub updated_at: i64,
     pub finished_at: i64,
+    /// The integrator's key-value pairs, a JSON object.
+    pub metadata: String,
 }
 
 /// A row of the `tasks` table.
@@ -78,6 +80,8 @@ pub struct NewJob {
     pub note: String,
     /// Where the job's events are posted, if anywhere.
     pub webhook: Option<crate::webhooks::NewWebhook>,
+    /// The integrator's key-value pairs.
+    pub metadata: std::collections::BTreeMap<String, String>,
 }
 
 /// The job of `owner` with this idempotency key, if any.
@@ -129,8 +133,8 @@ pub async fn insert_job(
     let now = now_ms();
     let inserted = sqlx::query(
         "INSERT INTO jobs (id, owner, name, state, preset, overrides, require_cuda, labels, \
-         memory_bytes, dataset_key, style_keys, idempotency_key, created_at, updated_at) \
-         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
+         memory_bytes, dataset_key, style_keys, idempotency_key, created_at, updated_at, \
+         metadata) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
          ON CONFLICT (owner, idempotency_key) WHERE idempotency_key IS NOT NULL DO NOTHING",
     )
     .bind(&job.id)
@@ -147,6 +151,7 @@ pub async fn insert_job(
     .bind(&job.idempotency_key)
     .bind(now)
     .bind(now)
+    .bind(serde_json::to_string(&job.metadata).unwrap_or_else(|_| "{}".into()))
     .execute(&mut *conn)
     .await?
     .rows_affected();
@@ -362,6 +367,7 @@ pub fn job_to_pb(row: JobRow, tasks: Vec<pb::Task>) -> pb::Job {
         finished_at_ms: row.finished_at,
         error: row.error,
         tasks,
+        metadata: serde_json::from_str(&row.metadata).unwrap_or_default(),
     }
 }
 
@@ -397,6 +403,7 @@ pub async fn list_jobs(
     pool: &SqlitePool,
     owner: Option<&str>,
     states: &[&str],
+    metadata: &HashMap<String, String>,
     before_row: i64,
     limit: i64,
 ) -> Result<Vec<JobRow>, Status> {
@@ -412,6 +419,14 @@ pub async fn list_jobs(
             list.push_bind(state.to_string());
         }
         query.push(")");
+    }
+    // Keys are checked to be `[A-Za-z0-9._/-]`: safe inside the quoted JSON path.
+    for (key, value) in metadata {
+        query
+            .push(" AND json_extract(metadata, '$.\"' || ")
+            .push_bind(key.clone())
+            .push(" || '\"') = ")
+            .push_bind(value.clone());
     }
     query.push(" ORDER BY row DESC LIMIT ").push_bind(limit);
     query

@@ -117,6 +117,9 @@ pub struct SubmitArgs {
     pub memory_mib: Option<u64>,
     #[command(flatten)]
     pub render: RenderOptions,
+    /// Metadata pair kept with the job (repeatable): `--meta customer=42 --meta order=A-17`.
+    #[arg(long = "meta", value_name = "KEY=VALUE")]
+    pub metadata: Vec<String>,
     /// POST the job's events to this http(s) URL, signed (Standard Webhooks); the secret is
     /// printed once.
     #[arg(long, value_name = "URL")]
@@ -186,6 +189,9 @@ pub struct ListArgs {
     /// Show at most this many jobs.
     #[arg(long, default_value_t = 50)]
     pub limit: usize,
+    /// Only jobs with this metadata pair (repeatable): `--meta customer=42`.
+    #[arg(long = "meta", value_name = "KEY=VALUE")]
+    pub metadata: Vec<String>,
     #[command(flatten)]
     pub connection: ConnectionArgs,
 }
@@ -275,6 +281,20 @@ pub struct EventsArgs {
     pub no_progress: bool,
     #[command(flatten)]
     pub connection: ConnectionArgs,
+}
+
+/// `KEY=VALUE` pairs of an option.
+fn parse_pairs(
+    option: &str,
+    list: &[String],
+) -> anyhow::Result<std::collections::HashMap<String, String>> {
+    list.iter()
+        .map(|pair| {
+            pair.split_once('=')
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .ok_or_else(|| anyhow::anyhow!("{option} {pair:?}: expected KEY=VALUE"))
+        })
+        .collect()
 }
 
 fn parse_event_kind(text: &str) -> Result<pb::EventKind, String> {
@@ -470,6 +490,7 @@ async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         },
         camera_path: args.render.camera_path(),
         style_blend: args.render.style_blend()?,
+        metadata: parse_pairs("--meta", &args.metadata)?,
         webhook: args.webhook.as_ref().map(|url| pb::Webhook {
             url: url.clone(),
             events: args.webhook_events.iter().map(|k| *k as i32).collect(),
@@ -562,6 +583,7 @@ async fn list(args: ListArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         states: args.states.clone(),
         owner: args.owner.clone(),
         page_size: args.limit.clamp(1, 500) as u32,
+        metadata: parse_pairs("--meta", &args.metadata)?,
         ..Default::default()
     };
     let jobs = client.list_all(&filter, args.limit).await?;

@@ -232,6 +232,7 @@ impl JobApi {
             req.styles.len(),
             &mut violations,
         );
+        check_metadata(&req.metadata, &mut violations);
         let webhook = crate::webhooks::validate(
             req.webhook.as_ref(),
             shared.config.webhook_allow_private,
@@ -307,6 +308,7 @@ impl JobApi {
             render,
             note: note.to_string(),
             webhook,
+            metadata: req.metadata.clone().into_iter().collect(),
         };
         let webhook_secret = new_job
             .webhook
@@ -344,6 +346,41 @@ impl JobApi {
                 String::new()
             },
         })
+    }
+}
+
+/// Checks a job's (or a filter's) metadata: at most 32 pairs, keys of 1-63 characters
+/// `[A-Za-z0-9._/-]`, values of at most 512 characters without control characters.
+fn check_metadata(
+    metadata: &std::collections::HashMap<String, String>,
+    violations: &mut Vec<Violation>,
+) {
+    if metadata.len() > 32 {
+        violations.push(Violation::new(
+            "metadata",
+            format!("{} pairs; at most 32", metadata.len()),
+        ));
+    }
+    let mut keys: Vec<&String> = metadata.keys().collect();
+    keys.sort();
+    for key in keys {
+        let field = format!("metadata[{:?}]", key.chars().take(63).collect::<String>());
+        let valid = (1..=63).contains(&key.len())
+            && key
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '/' | '-'));
+        if !valid {
+            violations.push(Violation::new(
+                &field,
+                "keys have 1-63 characters among A-Z a-z 0-9 . _ / -",
+            ));
+            continue;
+        }
+        let value = &metadata[key];
+        if value.chars().count() > 512 {
+            violations.push(Violation::new(&field, "longer than 512 characters"));
+        }
+        no_control_characters(&field, value, violations);
     }
 }
 
@@ -537,8 +574,20 @@ impl JobService for JobApi {
                 .parse::<i64>()
                 .map_err(|_| invalid("page_token", "not a token returned by ListJobs"))?
         };
-        let mut rows =
-            jobs::list_jobs(&self.shared.db.read, owner, &states, before, page_size + 1).await?;
+        let mut violations = Vec::new();
+        check_metadata(&req.metadata, &mut violations);
+        if !violations.is_empty() {
+            return Err(invalid_all(violations));
+        }
+        let mut rows = jobs::list_jobs(
+            &self.shared.db.read,
+            owner,
+            &states,
+            &req.metadata,
+            before,
+            page_size + 1,
+        )
+        .await?;
         let next_page_token = if rows.len() as i64 > page_size {
             rows.truncate(page_size as usize);
             rows.last().map(|r| r.row.to_string()).unwrap_or_default()

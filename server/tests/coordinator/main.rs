@@ -7,6 +7,7 @@ mod downloads;
 mod hostile;
 mod leases;
 mod lifecycle;
+mod metadata;
 mod metrics;
 mod progress;
 mod reflection;
