@@ -598,9 +598,12 @@ fn encode_mp4(dir: &Path, frame_ms: u32) {
         .stderr(std::process::Stdio::null())
         .status();
     match status {
-        Ok(s) if s.success() => {}
-        Ok(s) => tracing::warn!(%s, "ffmpeg failed; the GIF is the animation"),
-        Err(_) => tracing::debug!("ffmpeg not found; writing the GIF only"),
+        Ok(s) if s.success() => tracing::info!(path = %mp4.display(), "animation.mp4 written"),
+        Ok(s) => tracing::warn!(%s, "ffmpeg failed: animation.gif is the only animation"),
+        Err(_) => tracing::warn!(
+            "animation.mp4 not written: ffmpeg is not on PATH (the container images include \
+             it); animation.gif is the only animation"
+        ),
     }
 }
 
