@@ -174,6 +174,8 @@ impl Client {
             style_blend: spec.style_blend.clone(),
             webhook: spec.webhook.clone(),
             metadata: spec.metadata.clone(),
+            priority: spec.priority,
+            deadline_at_ms: spec.deadline_at_ms,
         };
         let response = self.create_job(request).await?;
         let job = response

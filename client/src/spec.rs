@@ -63,6 +63,10 @@ pub struct JobSpec {
     pub webhook: Option<pb::Webhook>,
     /// The integrator's key-value pairs, kept with the job and filterable in `list`.
     pub metadata: std::collections::HashMap<String, String>,
+    /// Scheduling priority, -100 to 100 (higher first; 0 by default).
+    pub priority: i32,
+    /// Epoch ms by which the job must have finished, or it fails (0 = none).
+    pub deadline_at_ms: i64,
 }
 
 impl JobSpec {

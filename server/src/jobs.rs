@@ -36,6 +36,9 @@ pub struct JobRow {
     pub finished_at: i64,
     /// The integrator's key-value pairs, a JSON object.
     pub metadata: String,
+    pub priority: i64,
+    /// Epoch ms; 0 = none.
+    pub deadline_at: i64,
 }
 
 /// A row of the `tasks` table.
@@ -82,6 +85,10 @@ pub struct NewJob {
     pub webhook: Option<crate::webhooks::NewWebhook>,
     /// The integrator's key-value pairs.
     pub metadata: std::collections::BTreeMap<String, String>,
+    /// Scheduling priority (-100..=100, higher first).
+    pub priority: i32,
+    /// Epoch ms by which the job must end; 0 = none.
+    pub deadline_at: i64,
 }
 
 /// The job of `owner` with this idempotency key, if any.
@@ -134,7 +141,7 @@ pub async fn insert_job(
     let inserted = sqlx::query(
         "INSERT INTO jobs (id, owner, name, state, preset, overrides, require_cuda, labels, \
          memory_bytes, dataset_key, style_keys, idempotency_key, created_at, updated_at, \
-         metadata) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
+         metadata, priority, deadline_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
          ON CONFLICT (owner, idempotency_key) WHERE idempotency_key IS NOT NULL DO NOTHING",
     )
     .bind(&job.id)
@@ -152,6 +159,8 @@ pub async fn insert_job(
     .bind(now)
     .bind(now)
     .bind(serde_json::to_string(&job.metadata).unwrap_or_else(|_| "{}".into()))
+    .bind(job.priority)
+    .bind(job.deadline_at)
     .execute(&mut *conn)
     .await?
     .rows_affected();
@@ -193,7 +202,8 @@ pub async fn insert_job(
         );
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO tasks (job_id, stage, state, core, config, memory_bytes, output_prefix, \
-             max_attempts, ready_at, created_at) VALUES (?, ?, ?, 1, ?, ?, ?, ?, ?, ?) RETURNING id",
+             max_attempts, ready_at, created_at, priority) VALUES (?, ?, ?, 1, ?, ?, ?, ?, ?, ?, ?) \
+             RETURNING id",
         )
         .bind(&job.id)
         .bind(stage.as_str())
@@ -204,6 +214,7 @@ pub async fn insert_job(
         .bind(max_attempts as i64)
         .bind(if previous.is_none() { now } else { 0 })
         .bind(now)
+        .bind(job.priority)
         .fetch_one(&mut *conn)
         .await?;
         if let Some(dep) = previous {
@@ -368,6 +379,8 @@ pub fn job_to_pb(row: JobRow, tasks: Vec<pb::Task>) -> pb::Job {
         error: row.error,
         tasks,
         metadata: serde_json::from_str(&row.metadata).unwrap_or_default(),
+        priority: row.priority as i32,
+        deadline_at_ms: row.deadline_at,
     }
 }
 
@@ -601,8 +614,8 @@ pub async fn add_render(
     );
     let id: i64 = sqlx::query_scalar(
         "INSERT INTO tasks (job_id, stage, state, core, config, memory_bytes, output_prefix, \
-         max_attempts, ready_at, created_at) VALUES (?, 'render_stylized', 'ready', 0, ?, ?, '', \
-         ?, ?, ?) RETURNING id",
+         max_attempts, ready_at, created_at, priority) VALUES (?, 'render_stylized', 'ready', 0, \
+         ?, ?, '', ?, ?, ?, ?) RETURNING id",
     )
     .bind(job_id)
     .bind(config)
@@ -610,6 +623,7 @@ pub async fn add_render(
     .bind(shared.config.max_attempts as i64)
     .bind(now)
     .bind(now)
+    .bind(job.priority)
     .fetch_one(&mut *tx)
     .await
     .map_err(internal)?;

@@ -246,7 +246,7 @@ async fn lease_in(
             "SELECT t.id, j.labels, t.ready_at, j.require_cuda FROM tasks t \
              JOIN jobs j ON j.id = t.job_id \
              WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
-             ORDER BY t.ready_at, t.id LIMIT ?",
+             ORDER BY t.priority DESC, t.ready_at, t.id LIMIT ?",
         )
         .bind(free)
         .bind(cuda)
@@ -841,8 +841,36 @@ pub async fn reap(shared: &Shared) -> Result<(), Status> {
         .writer
         .write(|conn, batch| async move { Ok(expire_leases(conn, batch, now_ms()).await?) }.boxed())
         .await?;
+    shared
+        .writer
+        .write(|conn, batch| {
+            async move { Ok(expire_deadlines(conn, batch, now_ms()).await?) }.boxed()
+        })
+        .await?;
     if requeued {
         shared.wake_workers();
+    }
+    Ok(())
+}
+
+/// Fails the unfinished jobs whose deadline has passed; their running tasks are told to stop
+/// through their workers' next heartbeat.
+async fn expire_deadlines(
+    conn: &mut SqliteConnection,
+    batch: &mut EventBatch,
+    now: i64,
+) -> Result<(), sqlx::Error> {
+    let late: Vec<String> = sqlx::query_scalar(
+        "SELECT id FROM jobs WHERE deadline_at > 0 AND deadline_at < ? \
+         AND state IN ('queued', 'running') LIMIT 100",
+    )
+    .bind(now)
+    .fetch_all(&mut *conn)
+    .await?;
+    for job_id in &late {
+        let reason = "deadline passed: the job did not finish by its deadline_at_ms";
+        cancel_open_tasks(conn, batch, job_id, reason).await?;
+        set_job_state(conn, batch, job_id, job_state::FAILED, Some(reason)).await?;
     }
     Ok(())
 }

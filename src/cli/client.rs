@@ -117,6 +117,12 @@ pub struct SubmitArgs {
     pub memory_mib: Option<u64>,
     #[command(flatten)]
     pub render: RenderOptions,
+    /// Scheduling priority, -100 to 100: higher-priority jobs' tasks are leased first.
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    pub priority: i32,
+    /// Fail the job if it has not finished this many seconds from now.
+    #[arg(long = "deadline", value_name = "SECONDS")]
+    pub deadline_secs: Option<f64>,
     /// Metadata pair kept with the job (repeatable): `--meta customer=42 --meta order=A-17`.
     #[arg(long = "meta", value_name = "KEY=VALUE")]
     pub metadata: Vec<String>,
@@ -491,6 +497,10 @@ async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         camera_path: args.render.camera_path(),
         style_blend: args.render.style_blend()?,
         metadata: parse_pairs("--meta", &args.metadata)?,
+        priority: args.priority,
+        deadline_at_ms: args
+            .deadline_secs
+            .map_or(0, |secs| now_ms() + (secs * 1000.0) as i64),
         webhook: args.webhook.as_ref().map(|url| pb::Webhook {
             url: url.clone(),
             events: args.webhook_events.iter().map(|k| *k as i32).collect(),

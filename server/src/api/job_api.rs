@@ -233,6 +233,21 @@ impl JobApi {
             &mut violations,
         );
         check_metadata(&req.metadata, &mut violations);
+        if !(-100..=100).contains(&req.priority) {
+            violations.push(Violation::new(
+                "priority",
+                format!("{} is outside [-100, 100]", req.priority),
+            ));
+        }
+        let now = crate::model::now_ms();
+        if req.deadline_at_ms != 0
+            && !(now < req.deadline_at_ms && req.deadline_at_ms <= now + 365 * 86_400_000)
+        {
+            violations.push(Violation::new(
+                "deadline_at_ms",
+                "must lie in the future, at most a year ahead (epoch milliseconds)",
+            ));
+        }
         let webhook = crate::webhooks::validate(
             req.webhook.as_ref(),
             shared.config.webhook_allow_private,
@@ -309,6 +324,8 @@ impl JobApi {
             note: note.to_string(),
             webhook,
             metadata: req.metadata.clone().into_iter().collect(),
+            priority: req.priority,
+            deadline_at: req.deadline_at_ms,
         };
         let webhook_secret = new_job
             .webhook

@@ -9,6 +9,7 @@ mod leases;
 mod lifecycle;
 mod metadata;
 mod metrics;
+mod priority;
 mod progress;
 mod reflection;
 mod restart;
