@@ -108,6 +108,7 @@ impl Coordinator {
             next_expiry_check: AtomicI64::new(0),
             validations: Semaphore::new(crate::inputs::CONCURRENT_VALIDATIONS),
             worker_owners: Default::default(),
+            queue_series: Default::default(),
             downloads: downloads.as_ref().map(|(_, d)| d.clone()),
         });
 

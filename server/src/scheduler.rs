@@ -12,7 +12,7 @@ use crate::state::Shared;
 use crate::writer::{OpError, OpResult};
 use futures::FutureExt;
 use sqlx::SqliteConnection;
-use std::collections::{BTreeMap, BTreeSet, HashSet};
+use std::collections::{BTreeMap, HashSet};
 use std::sync::atomic::Ordering;
 use stylenerf_proto::v1 as pb;
 use tonic::Status;
@@ -951,11 +951,6 @@ fn label_set(labels_json: &str) -> String {
     labels.join(",")
 }
 
-/// Series of the queue gauges set by the last refresh (stage, device class, label set), so
-/// that one whose tasks are all gone is set back to zero rather than left at its last value.
-static QUEUE_SERIES: std::sync::Mutex<BTreeSet<(&'static str, &'static str, String)>> =
-    std::sync::Mutex::new(BTreeSet::new());
-
 /// Refreshes the scheduling gauges: queue depth and running tasks per stage, device class and
 /// required label set (every stage has its zero series for each class, so that an autoscaler
 /// reads 0, not "no data"), and live workers.
@@ -992,7 +987,10 @@ pub async fn refresh_gauges(shared: &Shared) -> Result<(), sqlx::Error> {
         }
     }
     {
-        let mut previous = QUEUE_SERIES.lock().unwrap_or_else(|e| e.into_inner());
+        let mut previous = shared
+            .queue_series
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
         for key in previous.iter() {
             series.entry(key.clone()).or_default();
         }

@@ -33,6 +33,10 @@ pub struct Shared {
     /// Worker id → the principal that registered it. An id's owner never changes, so this
     /// cache of `workers.owner` spares every heartbeat a database read.
     pub worker_owners: Mutex<HashMap<String, String>>,
+    /// Series of the queue gauges set by the last refresh (stage, device class, label set), so
+    /// that one whose tasks are all gone is set back to zero rather than left at its last
+    /// value (per coordinator: others in the same process keep their own).
+    pub queue_series: Mutex<std::collections::BTreeSet<(&'static str, &'static str, String)>>,
     /// The HTTP download endpoint, when the coordinator serves one (`--http-listen`).
     pub downloads: Option<crate::http_download::Downloads>,
 }
