@@ -173,7 +173,7 @@ pub fn serve(
     listener: tokio::net::TcpListener,
     shared: Arc<Shared>,
     signer: UrlSigner,
-    mut shutdown: watch::Receiver<bool>,
+    shutdown: watch::Receiver<bool>,
 ) -> tokio::task::JoinHandle<()> {
     let app = axum::Router::new().route(
         "/v1/artifacts/{*key}",
@@ -181,17 +181,7 @@ pub fn serve(
             download(shared.clone(), signer.clone(), uri)
         }),
     );
-    let task = tokio::spawn(async move {
-        let result = axum::serve(listener, app)
-            .with_graceful_shutdown(async move {
-                let _ = shutdown.wait_for(|stop| *stop).await;
-            })
-            .await;
-        if let Err(e) = result {
-            tracing::error!(error = %e, "HTTP download endpoint failed");
-        }
-    });
-    task
+    crate::metrics_http::spawn_router(listener, app, shutdown, "HTTP download endpoint")
 }
 
 #[cfg(test)]

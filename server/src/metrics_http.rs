@@ -133,7 +133,7 @@ fn describe() {
 /// Serves `/metrics` until `shutdown` turns true. Returns the bound address.
 pub async fn serve(
     addr: SocketAddr,
-    mut shutdown: watch::Receiver<bool>,
+    shutdown: watch::Receiver<bool>,
 ) -> anyhow::Result<(SocketAddr, tokio::task::JoinHandle<()>)> {
     let handle = handle();
     let process = std::sync::Arc::new(metrics_process::Collector::default());
@@ -159,15 +159,27 @@ pub async fn serve(
         )
         // Liveness: the process answers. (The coordinator's readiness is its gRPC health.)
         .route("/healthz", axum::routing::get(|| async { "ok\n" }));
-    let task = tokio::spawn(async move {
+    Ok((
+        local,
+        spawn_router(listener, app, shutdown, "metrics endpoint"),
+    ))
+}
+
+/// Serves `app` on `listener` until `shutdown` turns true (the coordinator's HTTP endpoints).
+pub(crate) fn spawn_router(
+    listener: tokio::net::TcpListener,
+    app: axum::Router,
+    mut shutdown: watch::Receiver<bool>,
+    what: &'static str,
+) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
         let result = axum::serve(listener, app)
             .with_graceful_shutdown(async move {
                 let _ = shutdown.wait_for(|stop| *stop).await;
             })
             .await;
         if let Err(e) = result {
-            tracing::error!(error = %e, "metrics endpoint failed");
+            tracing::error!(error = %e, "{what} failed");
         }
-    });
-    Ok((local, task))
+    })
 }

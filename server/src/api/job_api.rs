@@ -366,6 +366,17 @@ impl JobApi {
     }
 }
 
+/// Whose jobs a listing or a watch covers: `None` for all (an admin who named no owner), else
+/// one owner — the caller's own unless an admin named another.
+fn owner_scope(caller: &Principal, requested: &str) -> Result<Option<String>, Status> {
+    match (caller.role, requested.is_empty()) {
+        (Role::Admin, true) => Ok(None),
+        (Role::Admin, false) => Ok(Some(requested.to_string())),
+        _ if requested.is_empty() || requested == caller.name => Ok(Some(caller.name.clone())),
+        _ => Err(invalid("owner", "only admins may name another owner")),
+    }
+}
+
 /// Checks a job's (or a filter's) metadata: at most 32 pairs, keys of 1-63 characters
 /// `[A-Za-z0-9._/-]`, values of at most 512 characters without control characters.
 fn check_metadata(
@@ -567,12 +578,7 @@ impl JobService for JobApi {
     ) -> Result<Response<pb::ListJobsResponse>, Status> {
         let caller = require(&request, CLIENT_ROLES)?;
         let req = request.into_inner();
-        let owner = match (caller.role, req.owner.is_empty()) {
-            (Role::Admin, true) => None,
-            (Role::Admin, false) => Some(req.owner.as_str()),
-            _ if req.owner.is_empty() || req.owner == caller.name => Some(caller.name.as_str()),
-            _ => return Err(invalid("owner", "only admins may list other owners' jobs")),
-        };
+        let owner = owner_scope(&caller, &req.owner)?;
         let mut states = Vec::new();
         for (i, state) in req.states.iter().enumerate() {
             states.push(
@@ -598,7 +604,7 @@ impl JobService for JobApi {
         }
         let mut rows = jobs::list_jobs(
             &self.shared.db.read,
-            owner,
+            owner.as_deref(),
             &states,
             &req.metadata,
             before,
@@ -654,15 +660,9 @@ impl JobService for JobApi {
     ) -> Result<Response<Self::WatchJobsStream>, Status> {
         let caller = require(&request, CLIENT_ROLES)?;
         let req = request.into_inner();
-        let scope = match (caller.role, req.owner.is_empty()) {
-            (Role::Admin, true) => Scope::All,
-            (Role::Admin, false) => Scope::Owner(req.owner),
-            _ if req.owner.is_empty() || req.owner == caller.name => Scope::Owner(caller.name),
-            _ => {
-                return Err(Status::permission_denied(
-                    "only admins may watch another owner's jobs",
-                ))
-            }
+        let scope = match owner_scope(&caller, &req.owner)? {
+            None => Scope::All,
+            Some(owner) => Scope::Owner(owner),
         };
         let (tx, rx) = mpsc::channel(64);
         tokio::spawn(watch(

@@ -78,7 +78,8 @@ async fn a_caller_watches_all_its_jobs_and_only_its_own() {
         })
         .await
         .unwrap_err();
-    assert_eq!(denied.code(), tonic::Code::PermissionDenied);
+    assert_eq!(denied.code(), tonic::Code::InvalidArgument);
+    assert_eq!(bad_fields(&denied), vec!["owner".to_string()]);
     let mut admin = jobs_client(&server, Some(ADMIN)).await;
     let mut bobs = admin
         .watch_jobs(pb::WatchJobsRequest {
