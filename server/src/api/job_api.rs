@@ -366,6 +366,15 @@ impl JobApi {
     }
 }
 
+/// An object key a client names for one of its jobs: well formed and under `jobs/<job_id>/`.
+fn check_job_key(job_id: &str, key: &str) -> Result<(), Status> {
+    check_key("key", key)?;
+    if !key.starts_with(&format!("jobs/{job_id}/")) {
+        return Err(invalid("key", format!("must lie under jobs/{job_id}/")));
+    }
+    Ok(())
+}
+
 /// Whose jobs a listing or a watch covers: `None` for all (an admin who named no owner), else
 /// one owner — the caller's own unless an admin named another.
 fn owner_scope(caller: &Principal, requested: &str) -> Result<Option<String>, Status> {
@@ -762,13 +771,7 @@ impl JobService for JobApi {
         let caller = require(&request, CLIENT_ROLES)?;
         let req = request.into_inner();
         jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
-        check_key("key", &req.key)?;
-        if !req.key.starts_with(&format!("jobs/{}/", req.job_id)) {
-            return Err(invalid(
-                "key",
-                format!("must lie under jobs/{}/", req.job_id),
-            ));
-        }
+        check_job_key(&req.job_id, &req.key)?;
         let stream = self.shared.storage.get_stream(&req.key, req.offset).await?;
         Ok(Response::new(Box::pin(stream)))
     }
@@ -782,13 +785,7 @@ impl JobService for JobApi {
         let caller = require(&request, CLIENT_ROLES)?;
         let req = request.into_inner();
         jobs::visible_job(&self.shared.db.read, &caller, &req.job_id).await?;
-        check_key("key", &req.key)?;
-        if !req.key.starts_with(&format!("jobs/{}/", req.job_id)) {
-            return Err(invalid(
-                "key",
-                format!("must lie under jobs/{}/", req.job_id),
-            ));
-        }
+        check_job_key(&req.job_id, &req.key)?;
         if req.ttl_seconds > MAX_TTL {
             return Err(invalid(
                 "ttl_seconds",
