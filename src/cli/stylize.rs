@@ -7,6 +7,8 @@ use std::time::Instant;
 use candle_core::Device;
 use clap::{Args, Subcommand};
 use stylenerf_engine::image_io;
+use stylenerf_engine::optim::LrSchedule;
+use stylenerf_engine::style2d::corpus::{self, Corpus, CorpusConfig};
 use stylenerf_engine::style2d::decoder::Decoder;
 use stylenerf_engine::style2d::encoder::VggEncoder;
 use stylenerf_engine::style2d::fit::{fit_pair, FitConfig};
@@ -28,6 +30,51 @@ pub enum StylizeCommand {
     Image(ImageArgs),
     /// Write the bundled styles (painted by code, see docs/STYLE2D.md) as PNG files.
     ExportStyles(ExportArgs),
+    /// Train a general-purpose decoder on many content photos and style images (how the
+    /// bundled decoder asset is made; see assets/decoder/PROVENANCE.md). Resumes from
+    /// OUT/ckpt; OUT/decoder.safetensors and OUT/preview.png are updated at every checkpoint.
+    TrainDecoder(TrainDecoderArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct TrainDecoderArgs {
+    /// Content images: files, or folders whose image files are all taken (repeatable).
+    #[arg(long, required = true)]
+    content: Vec<PathBuf>,
+    /// Style images: files, folders, or `builtin:<name>` (repeatable).
+    #[arg(long, required = true)]
+    style: Vec<String>,
+    /// Output folder.
+    #[arg(long = "out", value_name = "DIR")]
+    output: PathBuf,
+    /// Decoder to start from (default: a fresh one).
+    #[arg(long)]
+    init: Option<PathBuf>,
+    /// Encoder weights (any format `weights import` reads); default: the bundled VGG-16.
+    #[arg(long)]
+    encoder: Option<PathBuf>,
+    #[arg(long, default_value_t = CorpusConfig::default().steps)]
+    steps: u64,
+    /// Content/style pairs per step.
+    #[arg(long, default_value_t = CorpusConfig::default().batch)]
+    batch: usize,
+    /// Side of the square training crops (a multiple of 8).
+    #[arg(long, default_value_t = CorpusConfig::default().crop)]
+    crop: u32,
+    /// Peak learning rate (50 warm-up steps, then exponential decay to 0.2× at the last step).
+    #[arg(long, default_value_t = CorpusConfig::default().lr.lr)]
+    lr: f64,
+    #[arg(long, default_value_t = CorpusConfig::default().style_weight)]
+    style_weight: f64,
+    /// Probability that a style crop's hue is rotated by a random angle.
+    #[arg(long, default_value_t = CorpusConfig::default().hue_jitter)]
+    hue_jitter: f32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Stop this run (after writing a checkpoint) once this many minutes have passed; a later
+    /// run resumes.
+    #[arg(long)]
+    minutes: Option<f64>,
 }
 
 #[derive(Debug, Args)]
@@ -81,6 +128,7 @@ pub fn run(cmd: StylizeCommand) -> anyhow::Result<()> {
     match cmd {
         StylizeCommand::Image(args) => image(args),
         StylizeCommand::ExportStyles(args) => export_styles(args),
+        StylizeCommand::TrainDecoder(args) => train_decoder(args),
     }
 }
 
@@ -142,5 +190,98 @@ fn image(a: ImageArgs) -> anyhow::Result<()> {
     let (w, h, rgb) = images::tensor_to_hwc(&out)?;
     image_io::save_rgb_png(&a.output, w, h, &rgb)?;
     println!("wrote {} ({w}×{h})", a.output.display());
+    Ok(())
+}
+
+/// The image files a `--content`/`--style` argument names: the file itself, or a folder's
+/// image files in name order.
+fn image_files(path: &std::path::Path) -> anyhow::Result<Vec<PathBuf>> {
+    if !path.is_dir() {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let mut files: Vec<PathBuf> = std::fs::read_dir(path)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        anyhow::bail!("{}: no .png or .jpg files in this folder", path.display());
+    }
+    Ok(files)
+}
+
+fn train_decoder(a: TrainDecoderArgs) -> anyhow::Result<()> {
+    let dev = Device::Cpu;
+    let weights = EncoderWeights::load_or_bundled(a.encoder.as_deref())?;
+    let encoder = VggEncoder::new(&weights, &dev)?;
+    let mut content = Vec::new();
+    for p in &a.content {
+        for f in image_files(p)? {
+            content.push(image_io::load_rgb(&f)?);
+        }
+    }
+    let mut styles = Vec::new();
+    for s in &a.style {
+        if s.starts_with(StyleImage::BUILTIN) {
+            styles.push(StyleImage::load(s)?.image);
+            continue;
+        }
+        for f in image_files(std::path::Path::new(s))? {
+            styles.push(image_io::load_rgb(&f)?);
+        }
+    }
+    tracing::info!(
+        content = content.len(),
+        styles = styles.len(),
+        "train-decoder: corpus loaded"
+    );
+    let corpus = Corpus::new(content, styles)?;
+    let decoder = match &a.init {
+        Some(p) => Decoder::load(p, &dev)?.0,
+        None => Decoder::new(weights.arch, a.seed, &dev)?,
+    };
+    let net = AdaInNet { encoder, decoder };
+    let cfg = CorpusConfig {
+        steps: a.steps,
+        batch: a.batch,
+        crop: a.crop,
+        lr: LrSchedule {
+            lr: a.lr,
+            total_steps: a.steps,
+            ..CorpusConfig::default().lr
+        },
+        style_weight: a.style_weight,
+        hue_jitter: a.hue_jitter,
+        seed: a.seed,
+        ..CorpusConfig::default()
+    };
+    std::fs::create_dir_all(&a.output)?;
+    let t0 = Instant::now();
+    let log = corpus::train(&net, &corpus, &cfg, &a.output, &dev, |s| {
+        if s.step % 20 == 0 || s.step == cfg.steps {
+            tracing::info!(
+                step = s.step,
+                content = s.content,
+                style = s.style,
+                lr = s.lr,
+                elapsed_s = s.seconds as f32,
+                "training"
+            );
+        }
+        a.minutes
+            .is_none_or(|m| t0.elapsed().as_secs_f64() < m * 60.0)
+    })?;
+    let log_path = a.output.join("log.json");
+    stylenerf_engine::checkpoint::write_json_atomic(&log_path, &log)?;
+    println!(
+        "wrote {} after {} steps",
+        a.output.join("decoder.safetensors").display(),
+        log.last().map_or(0, |s| s.step)
+    );
     Ok(())
 }

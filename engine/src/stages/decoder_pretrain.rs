@@ -17,7 +17,7 @@
 //!
 //! Output folder: `decoder.safetensors`, `adain_decoder.safetensors`, `vae.safetensors`,
 //! `styles.json` (per style: name, μ, σ, plus how the style features were computed),
-//! `sheets/style-<k>.png` (rows of content | style | output), `metrics.json` (written last),
+//! `sheets/style-<k>.png` (labelled rows of content | style | output), `metrics.json` (written last),
 //! and `ckpt/` (decoder + Adam moments + RNG, and the baseline's weights once L_co is on).
 
 use std::collections::HashMap;
@@ -609,18 +609,19 @@ fn copy_weights(decoder: &Decoder) -> Result<HashMap<String, Tensor>> {
         .collect()
 }
 
-/// Writes rows of content | style | output (each `[1, 3, H, W]` / `[3, H, W]`), the style
-/// resized to the row height.
+/// Writes labelled rows of content | style | output (each `[1, 3, H, W]` / `[3, H, W]`), the
+/// style resized to the row height.
 fn contact_sheet(path: &Path, rows: &[(Tensor, Tensor)], style: &Tensor) -> Result<()> {
     let (_, _, h, w) = rows[0].0.dims4()?;
     let style = style.interpolate2d(h, w)?;
-    let mut img = image::RgbImage::new(3 * w as u32, (h * rows.len()) as u32);
-    for (r, (content, output)) in rows.iter().enumerate() {
-        for (c, t) in [content, &style, output].into_iter().enumerate() {
-            let (tw, th, rgb) = tensor_to_hwc(t)?;
-            let tile = crate::image_io::to_rgb8(tw, th, &rgb);
-            image::imageops::replace(&mut img, &tile, (c * w) as i64, (r * h) as i64);
-        }
-    }
-    crate::image_io::save_png(path, &img)
+    let tile = |t: &Tensor| -> Result<image::RgbImage> {
+        let (tw, th, rgb) = tensor_to_hwc(t)?;
+        Ok(crate::image_io::to_rgb8(tw, th, &rgb))
+    };
+    let grid = rows
+        .iter()
+        .map(|(content, output)| [content, &style, output].into_iter().map(tile).collect())
+        .collect::<Result<Vec<_>>>()?;
+    let sheet = crate::sheet::labelled_grid(&["content", "style", "output"], &grid)?;
+    crate::image_io::save_png(path, &sheet)
 }

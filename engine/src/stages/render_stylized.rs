@@ -4,8 +4,8 @@
 //! A style is rendered with its mean latent μ_j; a blend `a:0.3,b:0.7` with Σ w_j μ_j (the 2D
 //! methods blend the AdaIN targets' statistics the same way). For every style spec the stage
 //! writes, under `<spec>/`: `frames/frame_NNNN.png`, `animation.gif` (and `animation.mp4` when
-//! `ffmpeg` is on PATH), `sheet.png` (rows of style | NeRF→AdaIN | stylized NeRF for a few
-//! views). With evaluation on (the default), it also renders the path with (a) the plain-AdaIN
+//! `ffmpeg` is on PATH), `sheet.png` (labelled rows of style | photoreal render | NeRF→AdaIN |
+//! stylized NeRF for a few views). With evaluation on (the default), it also renders the path with (a) the plain-AdaIN
 //! decoder of `decoder_pretrain` (trained without L_co) frame by frame (the paper's
 //! NeRF→AdaIN baseline) and (b) the mutually fine-tuned
 //! decoder, and reports for (a), (b) and (c) the stylized NeRF the warped consistency errors
@@ -35,6 +35,7 @@ use crate::style2d::encoder::VggEncoder;
 use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc, StyleImage};
 use crate::style2d::network::StyleTarget;
 use crate::style2d::weights::EncoderWeights;
+use crate::style_metrics::StyleReference;
 use crate::stylized::latents::LatentCodes;
 use crate::stylized::style_module::StyleModule;
 use crate::stylized::surface::SurfaceSamples;
@@ -102,6 +103,34 @@ pub struct MethodScores {
     pub long_range: GapError,
     pub style_loss: f64,
     pub content_loss: f64,
+    /// Measured outside the encoder ([`crate::style_metrics`]), against the spec's main style.
+    pub outside: OutsideScores,
+}
+
+/// Style fidelity outside the training feature space: sliced Wasserstein distance of the
+/// frames' Lab colours to the painting's, and the distance of their Gabor texture signatures.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct OutsideScores {
+    pub colour_swd: f64,
+    pub texture_distance: f64,
+}
+
+impl OutsideScores {
+    fn of(reference: &StyleReference, frames: &[Tensor]) -> Result<Self> {
+        let raw = frames
+            .iter()
+            .map(|f| tensor_to_hwc(f))
+            .collect::<Result<Vec<_>>>()?;
+        let views: Vec<(usize, usize, &[f32])> = raw
+            .iter()
+            .map(|(w, h, rgb)| (*w as usize, *h as usize, rgb.as_slice()))
+            .collect();
+        let (colour_swd, texture_distance) = reference.score(&views);
+        Ok(Self {
+            colour_swd,
+            texture_distance,
+        })
+    }
 }
 
 /// Everything measured for one style spec.
@@ -112,6 +141,8 @@ pub struct SpecReport {
     pub frames: usize,
     /// Empty without evaluation.
     pub methods: Vec<MethodScores>,
+    /// The unstylized frames' [`OutsideScores`]: the "did nothing" floor (with evaluation).
+    pub unstylized: Option<OutsideScores>,
 }
 
 /// Consistency of the unstylized NeRF rendering along the same path: the floor that
@@ -388,6 +419,14 @@ pub fn run(
             })
         })
         .collect::<Result<Vec<_>>>()?;
+    // The painting as the network reads it, for the measures outside its feature space.
+    let references = style_tensors
+        .iter()
+        .map(|t| {
+            let (w, h, rgb) = tensor_to_hwc(t)?;
+            Ok(StyleReference::new(w as usize, h as usize, &rgb))
+        })
+        .collect::<Result<Vec<_>>>()?;
     let path = path_frames(&inputs, cfg, control, device)?;
     let features = path
         .photoreal
@@ -458,24 +497,26 @@ pub fn run(
         contact_sheet(
             &dir.join("sheet.png"),
             &style_tensors[main_style],
-            &adain_frames,
-            &stylized,
+            [&path.photoreal, &adain_frames, &stylized],
             cfg.sheet_rows,
         )?;
         let mut methods = Vec::new();
+        let mut unstylized = None;
         if let Some((short, long)) = &warps {
+            let every = |v: &[Tensor]| -> Vec<Tensor> {
+                v.iter()
+                    .step_by(cfg.fidelity_stride.max(1))
+                    .cloned()
+                    .collect()
+            };
+            let reference = &references[main_style];
+            unstylized = Some(OutsideScores::of(reference, &every(&path.photoreal))?);
             let finetuned_frames = decode(&finetuned)?;
             for (method, frames) in [
                 ("NeRF -> AdaIN", &adain_frames),
                 ("NeRF -> fine-tuned decoder", &finetuned_frames),
                 ("stylized NeRF", &stylized),
             ] {
-                let every = |v: &[Tensor]| -> Vec<Tensor> {
-                    v.iter()
-                        .step_by(cfg.fidelity_stride.max(1))
-                        .cloned()
-                        .collect()
-                };
                 let (style_loss, content_loss) =
                     fidelity(&encoder, &every(frames), &every(&features), &target)?;
                 methods.push(MethodScores {
@@ -484,6 +525,7 @@ pub fn run(
                     long_range: long.error(frames)?,
                     style_loss,
                     content_loss,
+                    outside: OutsideScores::of(reference, &every(frames))?,
                 });
             }
         }
@@ -492,6 +534,7 @@ pub fn run(
             folder,
             frames: stylized.len(),
             methods,
+            unstylized,
         });
     }
     let photoreal = match &warps {
@@ -521,13 +564,13 @@ pub fn run(
 /// unstylized rendering's consistency as a reference row.
 pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig) -> String {
     let mut s = format!(
-        "| style | method | short-range RMSE (gap {}) | short MAE | long-range RMSE (gap {}) | long MAE | style loss | content loss |\n|---|---|---|---|---|---|---|---|\n",
+        "| style | method | short-range RMSE (gap {}) | short MAE | long-range RMSE (gap {}) | long MAE | style loss | content loss | colour SWD (Lab) | texture distance |\n|---|---|---|---|---|---|---|---|---|---|\n",
         cfg.short_gap, cfg.long_gap
     );
     for spec in &report.specs {
         for m in &spec.methods {
             s += &format!(
-                "| {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} |\n",
+                "| {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.2} | {:.3} |\n",
                 spec.spec,
                 m.method,
                 m.short_range.rmse,
@@ -535,16 +578,27 @@ pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig)
                 m.long_range.rmse,
                 m.long_range.mae,
                 m.style_loss,
-                m.content_loss
+                m.content_loss,
+                m.outside.colour_swd,
+                m.outside.texture_distance
+            );
+        }
+        if let Some(u) = &spec.unstylized {
+            s += &format!(
+                "| {} | NeRF, unstylized (did nothing) | | | | | | | {:.2} | {:.3} |\n",
+                spec.spec, u.colour_swd, u.texture_distance
             );
         }
     }
     if let Some(p) = &report.photoreal {
         s += &format!(
-            "| (none) | NeRF, unstylized (reference) | {:.4} | {:.4} | {:.4} | {:.4} | | |\n",
+            "| (none) | NeRF, unstylized (reference) | {:.4} | {:.4} | {:.4} | {:.4} | | | | |\n",
             p.short_range.rmse, p.short_range.mae, p.long_range.rmse, p.long_range.mae
         );
     }
+    s += "\nColour SWD and texture distance are measured outside the encoder, against the spec's \
+          main style image (lower: closer to the painting); the unstylized row is the floor a \
+          method that transfers no style would score.\n";
     s
 }
 
@@ -607,30 +661,33 @@ fn encode_mp4(dir: &Path, frame_ms: u32) {
     }
 }
 
-/// Rows of style | NeRF→AdaIN | stylized NeRF, for `rows` views spread along the path.
-fn contact_sheet(
-    path: &Path,
-    style: &Tensor,
-    adain_frames: &[Tensor],
-    stylized: &[Tensor],
-    rows: usize,
-) -> Result<()> {
-    let (_, h, w) = stylized[0].dims3()?;
-    let rows = rows.clamp(1, stylized.len());
+/// Labelled rows of style | photoreal render | NeRF→AdaIN | stylized NeRF, for `rows` views
+/// spread along the path; `frames` are the last three columns' frames.
+fn contact_sheet(path: &Path, style: &Tensor, frames: [&[Tensor]; 3], rows: usize) -> Result<()> {
+    let n = frames[2].len();
+    let (_, h, w) = frames[2][0].dims3()?;
+    let rows = rows.clamp(1, n);
     let style = style.interpolate2d(h, w)?.squeeze(0)?;
-    let mut img = image::RgbImage::new(3 * w as u32, (h * rows) as u32);
-    for r in 0..rows {
-        let k = r * stylized.len() / rows;
-        for (c, t) in [&style, &adain_frames[k], &stylized[k]]
-            .into_iter()
-            .enumerate()
-        {
-            let (tw, th, rgb) = tensor_to_hwc(&t.unsqueeze(0)?)?;
-            let tile = image_io::to_rgb8(tw, th, &rgb);
-            image::imageops::replace(&mut img, &tile, (c * w) as i64, (r * h) as i64);
-        }
-    }
-    image_io::save_png(path, &img)
+    let tile = |t: &Tensor| -> Result<image::RgbImage> {
+        let (tw, th, rgb) = tensor_to_hwc(t)?;
+        Ok(image_io::to_rgb8(tw, th, &rgb))
+    };
+    let grid = (0..rows)
+        .map(|r| {
+            let k = r * n / rows;
+            std::iter::once(&style)
+                .chain(frames.iter().map(|f| &f[k]))
+                .map(tile)
+                .collect::<Result<Vec<_>>>()
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let labels = [
+        "style",
+        "photoreal render",
+        "NeRF -> AdaIN",
+        "stylized NeRF",
+    ];
+    image_io::save_png(path, &crate::sheet::labelled_grid(&labels, &grid)?)
 }
 
 #[cfg(test)]

@@ -6,6 +6,7 @@
 pub mod adain;
 pub mod arch;
 pub mod conv;
+pub mod corpus;
 pub mod decoder;
 pub mod encoder;
 pub mod fit;
