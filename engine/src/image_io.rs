@@ -7,6 +7,13 @@ use image::{Rgb, Rgb32FImage, RgbImage};
 
 use crate::{EngineError, Result};
 
+/// Whether `path` names a PNG or JPEG file by its extension (in any case).
+pub fn has_image_extension(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()))
+}
+
 /// Quantises interleaved RGB in [0, 1] to 8-bit.
 pub fn to_rgb8(width: u32, height: u32, rgb: &[f32]) -> RgbImage {
     let bytes = rgb

@@ -30,8 +30,8 @@ pub enum StylizeCommand {
     Image(ImageArgs),
     /// Write the bundled styles (painted by code, see docs/STYLE2D.md) as PNG files.
     ExportStyles(ExportArgs),
-    /// Train a general-purpose decoder on many content photos and style images (how the
-    /// bundled decoder asset is made; see assets/decoder/PROVENANCE.md). Resumes from
+    /// Train a general-purpose decoder on many content photos and style images (a 2D
+    /// teacher to start every job's decoder_pretrain from; see docs/STYLE2D.md). Resumes from
     /// OUT/ckpt; OUT/decoder.safetensors and OUT/preview.png are updated at every checkpoint.
     TrainDecoder(TrainDecoderArgs),
 }
@@ -202,11 +202,7 @@ fn image_files(path: &std::path::Path) -> anyhow::Result<Vec<PathBuf>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(path)
         .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
-        })
+        .filter(|p| image_io::has_image_extension(p))
         .collect();
     files.sort();
     if files.is_empty() {

@@ -103,11 +103,7 @@ fn split_specs(root: &Path, file: &Path) -> Result<Vec<FrameSpec>> {
 
 /// Blender datasets name images without their extension; add `.png` unless one is there.
 fn with_extension(rel: &str) -> String {
-    let has_image_ext = Path::new(rel)
-        .extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()));
-    if has_image_ext {
+    if crate::image_io::has_image_extension(Path::new(rel)) {
         rel.to_string()
     } else {
         format!("{rel}.png")

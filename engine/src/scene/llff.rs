@@ -24,8 +24,6 @@ pub const POSES_BOUNDS: &str = "poses_bounds.npy";
 /// NeRF's `bd_factor`: after rescaling, the nearest scene depth is 1 / 0.75.
 const BD_FACTOR: f32 = 0.75;
 
-const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
-
 /// One row of `poses_bounds.npy`, converted to OpenGL axes.
 struct Row {
     rotation: Mat3,
@@ -233,11 +231,7 @@ fn list_images(root: &Path, folder: &str) -> Result<Vec<String>> {
     for entry in entries {
         let entry = entry.map_err(|e| EngineError::io(&dir, e))?;
         let name = entry.file_name().to_string_lossy().into_owned();
-        let is_image = Path::new(&name)
-            .extension()
-            .and_then(|e| e.to_str())
-            .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()));
-        if is_image {
+        if crate::image_io::has_image_extension(Path::new(&name)) {
             names.push(name);
         }
     }

@@ -4,12 +4,14 @@
 //! A style is rendered with its mean latent μ_j; a blend `a:0.3,b:0.7` with Σ w_j μ_j (the 2D
 //! methods blend the AdaIN targets' statistics the same way). For every style spec the stage
 //! writes, under `<spec>/`: `frames/frame_NNNN.png`, `animation.gif` (and `animation.mp4` when
-//! `ffmpeg` is on PATH), `sheet.png` (labelled rows of style | photoreal render | NeRF→AdaIN |
-//! stylized NeRF for a few views). With evaluation on (the default), it also renders the path with (a) the plain-AdaIN
-//! decoder of `decoder_pretrain` (trained without L_co) frame by frame (the paper's
-//! NeRF→AdaIN baseline) and (b) the mutually fine-tuned
-//! decoder, and reports for (a), (b) and (c) the stylized NeRF the warped consistency errors
-//! and the style/content losses ([`crate::eval`]): `metrics.json` and `eval.md` (written last).
+//! `ffmpeg` is on PATH), `sheet.png` (labelled rows of style | photoreal render | NeRF→AdaIN
+//! | stylized NeRF for a few views). With evaluation on (the default), it also renders the
+//! path with (a) the plain-AdaIN decoder of `decoder_pretrain` (trained without L_co) frame by
+//! frame (the paper's NeRF→AdaIN baseline) and (b) the mutually fine-tuned decoder, and
+//! reports for (a), (b) and (c) the stylized NeRF the warped consistency errors, the
+//! style/content losses ([`crate::eval`]) and the colour/texture distances to the painting
+//! measured outside the encoder ([`crate::style_metrics`]), with the unstylized frames'
+//! distances as the floor: `metrics.json` and `eval.md` (written last).
 //!
 //! The default path is `render_views`' interpolated path, whose depth is the field's; any
 //! other camera path is given as cameras and its depth comes from the frozen density.
@@ -560,8 +562,9 @@ pub fn run(
 }
 
 /// The evaluation as a Markdown table in the paper's layout: one row per method and style,
-/// short- and long-range consistency (RMSE, MAE), style and content loss, then the
-/// unstylized rendering's consistency as a reference row.
+/// short- and long-range consistency (RMSE, MAE), style and content loss, colour SWD and
+/// texture distance, each style's unstylized floor, then the unstylized rendering's
+/// consistency as a reference row.
 pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig) -> String {
     let mut s = format!(
         "| style | method | short-range RMSE (gap {}) | short MAE | long-range RMSE (gap {}) | long MAE | style loss | content loss | colour SWD (Lab) | texture distance |\n|---|---|---|---|---|---|---|---|---|---|\n",

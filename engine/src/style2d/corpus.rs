@@ -1,7 +1,6 @@
 //! Training a general-purpose AdaIN decoder once, offline, on a corpus of content photos and
-//! style images — how the bundled decoder asset is made (`stylenerf stylize train-decoder`;
-//! provenance in `assets/decoder/PROVENANCE.md`). Every job's `decoder_pretrain` then
-//! fine-tunes that decoder instead of starting from noise.
+//! style images (`stylenerf stylize train-decoder`): a 2D teacher that a job's
+//! `decoder_pretrain` can fine-tune (its `init_decoder`) instead of starting from noise.
 //!
 //! Each step draws `batch` content crops and `batch` style crops, each of a random image, at a
 //! random scale (a square of side between `crop` pixels and the image's shorter side, resized
@@ -222,7 +221,8 @@ pub fn train(
         return Err(EngineError::config(
             "train-decoder",
             format!(
-                "crop must be a multiple of 8 of at least 32 and batch at least 1, got crop {} and batch {}",
+                "crop must be a multiple of 8 of at least 32 and batch at least 1, \
+                 got crop {} and batch {}",
                 cfg.crop, cfg.batch
             ),
         ));
@@ -371,6 +371,36 @@ mod tests {
         // Smaller than the crop: the whole image, enlarged.
         let small = Rgb32FImage::new(20, 12);
         assert_eq!(random_crop(&small, 32, &mut rng).dimensions(), (32, 32));
+    }
+
+    #[test]
+    fn an_empty_corpus_or_a_bad_crop_is_refused_with_the_reason() {
+        let img = || vec![Rgb32FImage::new(40, 40)];
+        let e = Corpus::new(vec![], img()).unwrap_err().to_string();
+        assert!(e.contains("at least one content image"), "{e}");
+        assert!(Corpus::new(img(), vec![]).is_err());
+        let dev = Device::Cpu;
+        let net = AdaInNet {
+            encoder: VggEncoder::new(&EncoderWeights::bundled().unwrap(), &dev).unwrap(),
+            decoder: Decoder::new(VggArch::Vgg16, 0, &dev).unwrap(),
+        };
+        let corpus = Corpus::new(img(), img()).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        for (crop, batch) in [(36, 2), (24, 2), (32, 0)] {
+            let cfg = CorpusConfig {
+                crop,
+                batch,
+                ..CorpusConfig::default()
+            };
+            let e = train(&net, &corpus, &cfg, dir.path(), &dev, |_| true)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(&format!("got crop {crop} and batch {batch}")),
+                "{e}"
+            );
+        }
+        assert!(!dir.path().join("ckpt").exists());
     }
 
     #[test]
