@@ -121,7 +121,7 @@ impl OutsideScores {
     fn of(reference: &StyleReference, frames: &[Tensor]) -> Result<Self> {
         let raw = frames
             .iter()
-            .map(|f| tensor_to_hwc(f))
+            .map(tensor_to_hwc)
             .collect::<Result<Vec<_>>>()?;
         let views: Vec<(usize, usize, &[f32])> = raw
             .iter()

@@ -14,7 +14,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use candle_core::{Device, Tensor};
+use candle_core::{DType, Device, Tensor};
 use image::imageops::FilterType;
 use image::{Rgb, Rgb32FImage};
 use serde::{Deserialize, Serialize};
@@ -206,7 +206,7 @@ fn draw(
 }
 
 /// Trains `net.decoder` on `corpus`, checkpointing into `out/ckpt` and resuming from it. At
-/// every checkpoint and at the end, `out/decoder.safetensors` is the current decoder and
+/// every checkpoint and at the end, `out/decoder.safetensors` is the current decoder (f16) and
 /// `out/preview.png` shows content | style | output for a few fixed pairs. `report` is called
 /// after every step; returning `false` stops after the next checkpoint is written.
 pub fn train(
@@ -217,7 +217,7 @@ pub fn train(
     device: &Device,
     mut report: impl FnMut(&CorpusStep) -> bool,
 ) -> Result<Vec<CorpusStep>> {
-    if cfg.crop % 8 != 0 || cfg.crop < 32 || cfg.batch == 0 {
+    if !cfg.crop.is_multiple_of(8) || cfg.crop < 32 || cfg.batch == 0 {
         return Err(EngineError::config(
             "train-decoder",
             format!(
@@ -260,8 +260,7 @@ pub fn train(
             seconds,
         };
         ckpt.save(step, &tensors, &meta)?;
-        net.decoder
-            .save(&out.join("decoder.safetensors"), net.encoder.source())?;
+        export(net, out)?;
         preview_sheet(net, &preview, &out.join("preview.png"), device)
     };
     for step in start..cfg.steps {
@@ -291,7 +290,7 @@ pub fn train(
         let go_on = report(&rec);
         let due = last_ckpt.elapsed().as_secs_f64() >= cfg.checkpoint_seconds;
         if rec.step == cfg.steps || due || !go_on {
-            save(rec.step, &adam, rng.clone(), &log, rec.seconds)?;
+            save(rec.step, &adam, rng, &log, rec.seconds)?;
             last_ckpt = Instant::now();
         }
         if !go_on {
@@ -299,10 +298,18 @@ pub fn train(
         }
     }
     if start >= cfg.steps {
-        net.decoder
-            .save(&out.join("decoder.safetensors"), net.encoder.source())?;
+        export(net, out)?;
     }
     Ok(log)
+}
+
+/// Writes `out/decoder.safetensors`, f16 (the form it ships in; the checkpoint keeps f32).
+fn export(net: &AdaInNet, out: &Path) -> Result<()> {
+    net.decoder.save_as(
+        &out.join("decoder.safetensors"),
+        net.encoder.source(),
+        DType::F16,
+    )
 }
 
 /// Rows of content | style | output for `pairs`.

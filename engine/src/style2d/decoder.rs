@@ -153,14 +153,26 @@ impl Decoder {
         Ok(())
     }
 
-    /// Saves the decoder as safetensors; `encoder` names the encoder it was trained with.
+    /// Saves the decoder as safetensors (f32); `encoder` names the encoder it was trained
+    /// with.
     pub fn save(&self, path: &Path, encoder: &str) -> Result<()> {
+        self.save_as(path, encoder, DType::F32)
+    }
+
+    /// [`Self::save`] with the weights stored as `dtype` (F16 halves a decoder meant to be
+    /// shipped; [`Self::load`] reads it back as f32).
+    pub fn save_as(&self, path: &Path, encoder: &str, dtype: DType) -> Result<()> {
         let meta = [
             ("format", FORMAT_TAG.to_string()),
             ("arch", self.arch.name().to_string()),
             ("encoder", encoder.to_string()),
         ];
-        st_file::save(path, &self.tensors(), &meta)
+        let tensors = self
+            .tensors()
+            .into_iter()
+            .map(|(k, t)| Ok((k, t.to_dtype(dtype)?)))
+            .collect::<Result<Vec<_>>>()?;
+        st_file::save(path, &tensors, &meta)
     }
 
     /// Loads a decoder saved by [`Self::save`] or AdaIN's `decoder.pth` (zip format; VGG-19

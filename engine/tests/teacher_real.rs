@@ -1,0 +1,117 @@
+//! A general 2D teacher on a real capture (ignored: it reads `../shared`, which CI does not
+//! need, and a decoder trained by `stylize train-decoder`, named by `STYLENERF_TEACHER`): the
+//! fox test frames (every 8th) stylized feed-forward by the bundled encoder and that decoder
+//! with each painting of `../shared/styles`, scored outside the encoder (Lab colour SWD, Gabor
+//! texture distance) against the unstylized frames' floor. docs/BENCHMARKS.md records which paintings
+//! the graded decoder's corpus held. A labelled sheet is written
+//! to `target/teacher_real/sheet.png`.
+//!
+//! `STYLENERF_TEACHER=dec/decoder.safetensors cargo test --release -p stylenerf-engine \
+//!     --test teacher_real -- --ignored --nocapture`
+
+use std::path::Path;
+
+use candle_core::Device;
+use stylenerf_engine::image_io::{has_image_extension, load_rgb, save_png, to_rgb8};
+use stylenerf_engine::style2d::decoder::Decoder;
+use stylenerf_engine::style2d::encoder::VggEncoder;
+use stylenerf_engine::style2d::images::{hwc_to_tensor, tensor_to_hwc};
+use stylenerf_engine::style2d::network::AdaInNet;
+use stylenerf_engine::style2d::weights::EncoderWeights;
+use stylenerf_engine::style_metrics::StyleReference;
+
+/// An image resized so its longer side is 256, cropped to multiples of 8, as raw RGB.
+fn load(path: &Path) -> (usize, usize, Vec<f32>) {
+    let img = load_rgb(path).unwrap();
+    let (w, h) = img.dimensions();
+    let s = 256.0 / w.max(h) as f32;
+    let (nw, nh) = ((w as f32 * s) as u32 / 8 * 8, (h as f32 * s) as u32 / 8 * 8);
+    let r = image::imageops::resize(&img, nw, nh, image::imageops::FilterType::Triangle);
+    (nw as usize, nh as usize, r.into_raw())
+}
+
+fn view(v: &[(usize, usize, Vec<f32>)]) -> Vec<(usize, usize, &[f32])> {
+    v.iter().map(|(w, h, x)| (*w, *h, x.as_slice())).collect()
+}
+
+#[test]
+#[ignore = "reads ../shared/styles, ../shared/data/fox and $STYLENERF_TEACHER"]
+fn a_teacher_moves_fox_frames_toward_each_painting() {
+    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared");
+    let dev = Device::Cpu;
+    let teacher = std::env::var("STYLENERF_TEACHER")
+        .expect("STYLENERF_TEACHER: the decoder.safetensors to grade");
+    let (decoder, _) = Decoder::load(Path::new(&teacher), &dev).unwrap();
+    let net = AdaInNet {
+        encoder: VggEncoder::new(&EncoderWeights::bundled().unwrap(), &dev).unwrap(),
+        decoder,
+    };
+    let mut files: Vec<_> = std::fs::read_dir(shared.join("data/fox/images"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| has_image_extension(p))
+        .collect();
+    files.sort();
+    let frames: Vec<_> = files.iter().step_by(8).map(|p| load(p)).collect();
+    let mut rows = Vec::new();
+    println!("| painting | colour SWD photo → teacher (ratio) | texture photo → teacher |");
+    println!("|---|---|---|");
+    for name in [
+        "starry_night",
+        "shipwreck",
+        "the_scream",
+        "woman-with-hat-matisse",
+    ] {
+        let (sw, sh, style) = load(&shared.join(format!("styles/{name}.jpg")));
+        let reference = StyleReference::new(sw, sh, &style);
+        let target = net
+            .style_target(&hwc_to_tensor(&style, sw, sh, &dev).unwrap())
+            .unwrap();
+        let stylized: Vec<(usize, usize, Vec<f32>)> = frames
+            .iter()
+            .map(|(w, h, rgb)| {
+                let out = net
+                    .stylize(&hwc_to_tensor(rgb, *w, *h, &dev).unwrap(), &target, 1.0)
+                    .unwrap();
+                let (ow, oh, o) = tensor_to_hwc(&out).unwrap();
+                (ow as usize, oh as usize, o)
+            })
+            .collect();
+        let floor = reference.score(&view(&frames));
+        let teacher = reference.score(&view(&stylized));
+        println!(
+            "| {name} | {:.2} → {:.2} ({:.2}×) | {:.3} → {:.3} |",
+            floor.0,
+            teacher.0,
+            teacher.0 / floor.0,
+            floor.1,
+            teacher.1
+        );
+        assert!(teacher.0.is_finite() && teacher.1.is_finite());
+        let (fw, fh, _) = frames[0];
+        let tile = |rgb: &[f32], w: usize, h: usize| {
+            let img = to_rgb8(w as u32, h as u32, rgb);
+            image::imageops::resize(
+                &img,
+                fw as u32,
+                fh as u32,
+                image::imageops::FilterType::Triangle,
+            )
+        };
+        rows.push(vec![
+            tile(&style, sw, sh),
+            tile(&frames[1].2, fw, fh),
+            tile(&stylized[1].2, fw, fh),
+            tile(&frames[3].2, fw, fh),
+            tile(&stylized[3].2, fw, fh),
+        ]);
+    }
+    let sheet = stylenerf_engine::sheet::labelled_grid(
+        &["style", "photo", "teacher", "photo", "teacher"],
+        &rows,
+    )
+    .unwrap();
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/teacher_real");
+    std::fs::create_dir_all(&out).unwrap();
+    save_png(&out.join("sheet.png"), &sheet).unwrap();
+}
