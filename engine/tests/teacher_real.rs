@@ -2,32 +2,34 @@
 //! need, and a decoder trained by `stylize train-decoder`, named by `STYLENERF_TEACHER`): the
 //! fox test frames (every 8th) stylized feed-forward by the bundled encoder and that decoder
 //! with each painting of `../shared/styles`, scored outside the encoder (Lab colour SWD, Gabor
-//! texture distance) against the unstylized frames' floor. docs/BENCHMARKS.md records which paintings
-//! the graded decoder's corpus held. A labelled sheet is written
-//! to `target/teacher_real/sheet.png`.
+//! texture distance) against the unstylized frames' floor. docs/BENCHMARKS.md records which
+//! paintings the graded decoder's corpus held. A labelled sheet is written to
+//! `target/teacher_real/sheet.png`.
 //!
 //! `STYLENERF_TEACHER=dec/decoder.safetensors cargo test --release -p stylenerf-engine \
 //!     --test teacher_real -- --ignored --nocapture`
 
 use std::path::Path;
 
-use candle_core::Device;
+use candle_core::{Device, Tensor};
 use stylenerf_engine::image_io::{has_image_extension, load_rgb, save_png, to_rgb8};
 use stylenerf_engine::style2d::decoder::Decoder;
 use stylenerf_engine::style2d::encoder::VggEncoder;
-use stylenerf_engine::style2d::images::{hwc_to_tensor, tensor_to_hwc};
+use stylenerf_engine::style2d::images::{tensor_to_hwc, to_tensor};
 use stylenerf_engine::style2d::network::AdaInNet;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::style_metrics::StyleReference;
 
-/// An image resized so its longer side is 256, cropped to multiples of 8, as raw RGB.
-fn load(path: &Path) -> (usize, usize, Vec<f32>) {
-    let img = load_rgb(path).unwrap();
-    let (w, h) = img.dimensions();
-    let s = 256.0 / w.max(h) as f32;
-    let (nw, nh) = ((w as f32 * s) as u32 / 8 * 8, (h as f32 * s) as u32 / 8 * 8);
-    let r = image::imageops::resize(&img, nw, nh, image::imageops::FilterType::Triangle);
-    (nw as usize, nh as usize, r.into_raw())
+/// An image at the pipeline's style size (longer side 256, multiples of 8), as the network's
+/// input tensor and as raw RGB for the measures.
+fn load(path: &Path, dev: &Device) -> (Tensor, (usize, usize, Vec<f32>)) {
+    let t = to_tensor(&load_rgb(path).unwrap(), 256, dev).unwrap();
+    (t.clone(), raw(&t))
+}
+
+fn raw(t: &Tensor) -> (usize, usize, Vec<f32>) {
+    let (w, h, rgb) = tensor_to_hwc(t).unwrap();
+    (w as usize, h as usize, rgb)
 }
 
 fn view(v: &[(usize, usize, Vec<f32>)]) -> Vec<(usize, usize, &[f32])> {
@@ -52,7 +54,7 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
         .filter(|p| has_image_extension(p))
         .collect();
     files.sort();
-    let frames: Vec<_> = files.iter().step_by(8).map(|p| load(p)).collect();
+    let (inputs, frames): (Vec<_>, Vec<_>) = files.iter().step_by(8).map(|p| load(p, &dev)).unzip();
     let mut rows = Vec::new();
     println!("| painting | colour SWD photo → teacher (ratio) | texture photo → teacher |");
     println!("|---|---|---|");
@@ -62,20 +64,12 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
         "the_scream",
         "woman-with-hat-matisse",
     ] {
-        let (sw, sh, style) = load(&shared.join(format!("styles/{name}.jpg")));
+        let (style_input, (sw, sh, style)) = load(&shared.join(format!("styles/{name}.jpg")), &dev);
         let reference = StyleReference::new(sw, sh, &style);
-        let target = net
-            .style_target(&hwc_to_tensor(&style, sw, sh, &dev).unwrap())
-            .unwrap();
-        let stylized: Vec<(usize, usize, Vec<f32>)> = frames
+        let target = net.style_target(&style_input).unwrap();
+        let stylized: Vec<_> = inputs
             .iter()
-            .map(|(w, h, rgb)| {
-                let out = net
-                    .stylize(&hwc_to_tensor(rgb, *w, *h, &dev).unwrap(), &target, 1.0)
-                    .unwrap();
-                let (ow, oh, o) = tensor_to_hwc(&out).unwrap();
-                (ow as usize, oh as usize, o)
-            })
+            .map(|x| raw(&net.stylize(x, &target, 1.0).unwrap()))
             .collect();
         let floor = reference.score(&view(&frames));
         let teacher = reference.score(&view(&stylized));
