@@ -8,7 +8,8 @@ use crate::spec::{
     overrides_json, Input, JobPage, JobSpec, ListFilter, RenderSpec, Submission, WatchOptions,
 };
 use crate::transport::{connect_channel, AuthedChannel, Bearer, ConnectOptions};
-use crate::upload::{message_stream, prepare_dataset, prepare_file, PreparedUpload};
+use crate::upload::{append_stream, prepare_dataset, prepare_file, PreparedUpload};
+use crate::watch::backoff;
 use crate::watch::EventStream;
 use futures::StreamExt;
 use std::path::{Path, PathBuf};
@@ -20,6 +21,25 @@ use tonic::Streaming;
 
 /// Largest message accepted from the coordinator (job listings with many artifacts).
 const MAX_MESSAGE_BYTES: usize = 16 << 20;
+
+/// Failed attempts in a row before an upload gives up.
+pub const MAX_UPLOAD_RESUMES: u32 = 8;
+
+/// Whether an upload step that failed this way may be resumed from the committed size: a
+/// lost connection or a broken stream, another call on the session, or an offset that the
+/// coordinator had moved past.
+fn may_resume(error: &ClientError) -> bool {
+    use tonic::Code;
+    error.is_retryable()
+        || matches!(
+            error,
+            ClientError::FailedPrecondition { .. }
+                | ClientError::Status {
+                    code: Code::Unknown | Code::Cancelled | Code::Internal,
+                    ..
+                }
+        )
+}
 
 /// A connection to a coordinator's `JobService`, authenticated with one token.
 #[derive(Clone)]
@@ -77,22 +97,85 @@ impl Client {
         move |status| ClientError::from_status(status, &self.endpoint)
     }
 
-    /// Streams a prepared file as one upload.
+    /// Sends a prepared file as a resumable upload: a session, appends from the size the
+    /// coordinator has committed (again after a broken stream, up to [`MAX_UPLOAD_RESUMES`]
+    /// times in a row), then the finish with the SHA-256 (repeated safely if its answer is
+    /// lost).
     async fn send_upload(
         &self,
         upload: &PreparedUpload,
         kind: pb::UploadKind,
     ) -> Result<pb::UploadReceipt> {
-        let file = tokio::fs::File::open(&upload.path)
+        let session = self
+            .jobs
+            .clone()
+            .start_upload(pb::StartUploadRequest {
+                kind: kind as i32,
+                filename: upload.filename.clone(),
+                total_size: upload.size,
+            })
             .await
-            .map_err(|e| ClientError::io(&upload.path, e))?;
+            .map_err(self.status())?
+            .into_inner();
+        let id = session.session_id;
+        let mut committed = session.committed_size;
+        let mut failures = 0;
+        loop {
+            let step = async {
+                if committed < upload.size {
+                    committed = self.append(upload, &id, committed).await?;
+                }
+                if committed < upload.size {
+                    return Err(ClientError::Unreachable {
+                        endpoint: self.endpoint.to_string(),
+                        reason: format!(
+                            "the upload stream ended after {committed} of {} bytes",
+                            upload.size
+                        ),
+                    });
+                }
+                self.jobs
+                    .clone()
+                    .finish_upload(pb::FinishUploadRequest {
+                        session_id: id.clone(),
+                        sha256: upload.sha256.clone(),
+                        total_size: upload.size,
+                    })
+                    .await
+                    .map(tonic::Response::into_inner)
+                    .map_err(self.status())
+            };
+            let cause = match step.await {
+                Ok(receipt) => return Ok(receipt),
+                Err(e) if may_resume(&e) && failures < MAX_UPLOAD_RESUMES => e,
+                Err(e) => return Err(e),
+            };
+            failures += 1;
+            tracing::warn!(session = %id, error = %cause, attempt = failures, "upload interrupted; resuming");
+            tokio::time::sleep(backoff(failures)).await;
+            // Where the coordinator stands now (it commits what arrived before the break).
+            if let Ok(now) = self
+                .jobs
+                .clone()
+                .get_upload_session(pb::GetUploadSessionRequest {
+                    session_id: id.clone(),
+                })
+                .await
+            {
+                committed = now.into_inner().committed_size;
+            }
+        }
+    }
+
+    /// One `AppendUpload` stream from `offset`; returns the committed size.
+    async fn append(&self, upload: &PreparedUpload, id: &str, offset: u64) -> Result<u64> {
         let io_error = Arc::new(Mutex::new(None));
-        let messages = message_stream(upload, kind, file, io_error.clone());
-        let result = self.jobs.clone().upload(messages).await;
+        let messages = append_stream(upload, id, offset, io_error.clone()).await?;
+        let result = self.jobs.clone().append_upload(messages).await;
         if let Some(e) = io_error.lock().expect("not poisoned").take() {
             return Err(ClientError::io(&upload.path, e));
         }
-        Ok(result.map_err(self.status())?.into_inner())
+        Ok(result.map_err(self.status())?.into_inner().committed_size)
     }
 
     /// Uploads a scene: a folder (packed into a tar archive with the members relative to it;

@@ -1,7 +1,7 @@
 //! Preparing uploads: packing a scene folder into a deterministic tar archive (sorted members,
 //! zeroed timestamps and owners, symbolic links followed, hidden files left out) in a temporary
-//! file, hashing files with SHA-256, and turning a file into the `Upload` message stream
-//! (header, then chunks of at most 1 MiB read as they are sent).
+//! file, hashing files with SHA-256, and turning a file from an offset into an `AppendUpload`
+//! message stream (where to resume, then chunks of at most 1 MiB read as they are sent).
 
 use crate::error::{ClientError, Result};
 use futures::Stream;
@@ -199,30 +199,38 @@ pub fn prepare_dataset(path: &Path) -> Result<PreparedUpload> {
     }
 }
 
-/// The `Upload` request stream: the header, then the file in [`CHUNK_BYTES`] pieces. Read
-/// errors end the stream early; the coordinator then reports the short upload, and the
-/// caller learns the cause from the returned `io_error` slot.
-pub(crate) fn message_stream(
+/// An `AppendUpload` request stream: where to resume, then the file from `offset` in
+/// [`CHUNK_BYTES`] pieces. Read errors end the stream early (the coordinator commits what
+/// arrived), and the caller learns the cause from the `io_error` slot.
+pub(crate) async fn append_stream(
     upload: &PreparedUpload,
-    kind: pb::UploadKind,
-    file: tokio::fs::File,
+    session_id: &str,
+    offset: u64,
     io_error: std::sync::Arc<std::sync::Mutex<Option<std::io::Error>>>,
-) -> impl Stream<Item = pb::UploadChunk> + Send + 'static {
-    let header = pb::UploadChunk {
-        part: Some(pb::upload_chunk::Part::Header(pb::UploadHeader {
-            kind: kind as i32,
-            filename: upload.filename.clone(),
-            total_size: upload.size,
-            sha256: upload.sha256.clone(),
+) -> Result<impl Stream<Item = pb::UploadSessionChunk> + Send + 'static> {
+    use tokio::io::AsyncSeekExt;
+    let mut file = tokio::fs::File::open(&upload.path)
+        .await
+        .map_err(|e| ClientError::io(&upload.path, e))?;
+    file.seek(std::io::SeekFrom::Start(offset))
+        .await
+        .map_err(|e| ClientError::io(&upload.path, e))?;
+    let resume = pb::UploadSessionChunk {
+        part: Some(pb::upload_session_chunk::Part::Resume(pb::UploadResume {
+            session_id: session_id.to_string(),
+            offset,
         })),
     };
     let data = futures::StreamExt::map(
         stylenerf_proto::chunks::file_chunks(file, CHUNK_BYTES, io_error),
-        |buf| pb::UploadChunk {
-            part: Some(pb::upload_chunk::Part::Data(buf)),
+        |buf| pb::UploadSessionChunk {
+            part: Some(pb::upload_session_chunk::Part::Data(buf)),
         },
     );
-    futures::StreamExt::chain(futures::stream::iter([header]), data)
+    Ok(futures::StreamExt::chain(
+        futures::stream::iter([resume]),
+        data,
+    ))
 }
 
 #[cfg(test)]

@@ -23,7 +23,8 @@ pub type EventStream = Pin<Box<dyn Stream<Item = Result<pb::Event>> + Send + 'st
 /// Reconnection attempts in a row before the stream gives up.
 const MAX_RECONNECTS: u32 = 8;
 
-fn backoff(attempt: u32) -> Duration {
+/// The pause before reconnection attempt `attempt` (also between upload resumes).
+pub(crate) fn backoff(attempt: u32) -> Duration {
     Duration::from_millis(250u64 << attempt.min(5)).min(Duration::from_secs(5))
 }
 

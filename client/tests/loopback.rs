@@ -553,3 +553,109 @@ async fn errors_are_clear() {
 
     coordinator.shutdown().await.unwrap();
 }
+
+/// A TCP proxy to `upstream` that cuts each of its first `cuts` connections after `after`
+/// bytes from the client; counts connections and the bytes it forwarded to `upstream`.
+struct CuttingProxy {
+    addr: std::net::SocketAddr,
+    connections: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    forwarded: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl CuttingProxy {
+    async fn start(upstream: std::net::SocketAddr, cuts: usize, after: u64) -> CuttingProxy {
+        use std::sync::atomic::Ordering::SeqCst;
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let connections = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let forwarded = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let (count, total) = (connections.clone(), forwarded.clone());
+        tokio::spawn(async move {
+            while let Ok((client, _)) = listener.accept().await {
+                let n = count.fetch_add(1, SeqCst);
+                let limit = if n < cuts { after } else { u64::MAX };
+                let total = total.clone();
+                tokio::spawn(async move {
+                    let server = tokio::net::TcpStream::connect(upstream).await.unwrap();
+                    let (mut from_client, mut to_client) = client.into_split();
+                    let (mut from_server, mut to_server) = server.into_split();
+                    let back = tokio::spawn(async move {
+                        let _ = tokio::io::copy(&mut from_server, &mut to_client).await;
+                    });
+                    let mut sent = 0u64;
+                    let mut buf = vec![0u8; 16 << 10];
+                    while sent < limit {
+                        let want = buf.len().min((limit - sent) as usize);
+                        match from_client.read(&mut buf[..want]).await {
+                            Ok(0) | Err(_) => break,
+                            Ok(n) => {
+                                if to_server.write_all(&buf[..n]).await.is_err() {
+                                    break;
+                                }
+                                sent += n as u64;
+                                total.fetch_add(n as u64, SeqCst);
+                            }
+                        }
+                    }
+                    // The link breaks: both directions go down.
+                    back.abort();
+                });
+            }
+        });
+        CuttingProxy {
+            addr,
+            connections,
+            forwarded,
+        }
+    }
+}
+
+#[tokio::test]
+async fn an_upload_resumes_where_a_broken_link_left_it() {
+    use std::sync::atomic::Ordering::SeqCst;
+    let dir = tempfile::tempdir().unwrap();
+    let coordinator = start(&dir.path().join("coord")).await;
+    // A scene with a 4 MiB member of incompressible bytes; the link breaks three times, each
+    // after 1.5 MiB: one whole 1 MiB data message gets through each time (a message cut
+    // in half is lost: the coordinator commits whole messages).
+    let scene = dir.path().join("lego");
+    write_scene(&scene);
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let noise: Vec<u8> = (0..4 << 20)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state as u8
+        })
+        .collect();
+    std::fs::write(scene.join("notes.bin"), &noise).unwrap();
+    let cut = 3 << 19;
+    let proxy = CuttingProxy::start(coordinator.local_addr(), 3, cut).await;
+    let client = Client::connect(&format!("http://{}", proxy.addr), Some(ALICE))
+        .await
+        .unwrap();
+    let receipt = client
+        .upload_dataset(&scene)
+        .await
+        .expect("uploads through the cuts");
+    assert!(receipt.summary.contains("2 frames"), "{}", receipt.summary);
+    assert!(receipt.size > noise.len() as u64);
+    assert!(
+        proxy.connections.load(SeqCst) >= 4,
+        "the link was cut three times"
+    );
+    // Each attempt went on from what the coordinator had committed: starting over would have
+    // sent the three cut-off prefixes again on top of the whole archive.
+    let forwarded = proxy.forwarded.load(SeqCst);
+    assert!(
+        forwarded < receipt.size + 2 * cut,
+        "{forwarded} bytes forwarded for {} bytes of content",
+        receipt.size
+    );
+    // The upload is whole: a job can use it.
+    let mut spec = job_spec(dir.path());
+    spec.dataset = Some(Input::UploadId(receipt.upload_id));
+    client.submit(&spec).await.expect("a job from the upload");
+}

@@ -64,6 +64,8 @@ pub struct CoordinatorConfig {
     pub retention: Option<Duration>,
     /// How often the retention sweep runs.
     pub retention_sweep_interval: Duration,
+    /// A resumable upload session unused for this long is deleted with its bytes.
+    pub upload_session_ttl: Duration,
     /// Accepted preset names.
     pub presets: Vec<String>,
     pub limits: Limits,
@@ -120,6 +122,8 @@ pub struct Limits {
     pub max_render_frames: u32,
     /// Largest object a worker may store through `ArtifactService`.
     pub max_object_bytes: u64,
+    /// Most unfinished resumable upload sessions per owner.
+    pub max_upload_sessions: usize,
 }
 
 impl Default for Limits {
@@ -135,6 +139,7 @@ impl Default for Limits {
             max_styles: 8,
             max_render_frames: 3600,
             max_object_bytes: 4096 * MIB,
+            max_upload_sessions: 16,
         }
     }
 }
@@ -168,6 +173,7 @@ impl CoordinatorConfig {
             webhook_allow_private: false,
             retention: None,
             retention_sweep_interval: Duration::from_secs(3600),
+            upload_session_ttl: Duration::from_secs(24 * 3600),
             backups_kept: 48,
             restore_from_backup: false,
             presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
@@ -265,6 +271,10 @@ pub struct CoordinatorArgs {
     /// checked hourly; 0 = keep everything [default: 0].
     #[arg(long, env = "STYLENERF_RETENTION_DAYS")]
     pub retention_days: Option<f64>,
+    /// Delete a resumable upload session (and the bytes it holds) after this many hours
+    /// without an append [default: 24].
+    #[arg(long, env = "STYLENERF_UPLOAD_SESSION_HOURS")]
+    pub upload_session_hours: Option<f64>,
     /// Accepted preset names, comma-separated [default: tiny,quick,standard,paper].
     #[arg(long, env = "STYLENERF_PRESETS", value_delimiter = ',')]
     pub presets: Option<Vec<String>>,
@@ -305,6 +315,7 @@ struct FileConfig {
     backups_kept: Option<usize>,
     restore_from_backup: Option<bool>,
     retention_days: Option<f64>,
+    upload_session_hours: Option<f64>,
     webhook_allow_private: Option<bool>,
     http_listen: Option<SocketAddr>,
     public_url: Option<String>,
@@ -435,6 +446,14 @@ impl CoordinatorArgs {
             true,
         )?;
         config.retention = (!retention.is_zero()).then_some(retention);
+        config.upload_session_ttl = seconds(
+            self.upload_session_hours
+                .or(file.upload_session_hours)
+                .map(|h| h * 3600.0),
+            "upload_session_hours",
+            config.upload_session_ttl,
+            false,
+        )?;
         config.webhook_allow_private =
             self.webhook_allow_private || file.webhook_allow_private.unwrap_or(false);
         config.http_listen = self.http_listen.or(file.http_listen);

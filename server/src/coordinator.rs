@@ -109,6 +109,7 @@ impl Coordinator {
             validations: Semaphore::new(crate::inputs::CONCURRENT_VALIDATIONS),
             worker_owners: Default::default(),
             queue_series: Default::default(),
+            busy_upload_sessions: Default::default(),
             downloads: downloads.as_ref().map(|(_, d)| d.clone()),
         });
 
@@ -179,6 +180,7 @@ impl Coordinator {
         let mut background = vec![
             tokio::spawn(reaper(shared.clone())),
             tokio::spawn(crate::webhooks::run(shared.clone())),
+            tokio::spawn(crate::upload_sessions::run(shared.clone())),
         ];
         if let Some((listener, endpoint)) = downloads {
             tracing::info!(public_url = %endpoint.public_url, "HTTP downloads");

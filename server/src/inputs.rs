@@ -1,6 +1,7 @@
 //! Job inputs: receiving chunked uploads into a spool file (size and SHA-256 checked as the
 //! bytes arrive), validating datasets and style images off the async runtime, storing accepted
-//! uploads under `uploads/<id>/`, and validating objects that operators staged in the store.
+//! uploads under `uploads/<id>/` (also for the resumable sessions of `upload_sessions`), and
+//! validating objects that operators staged in the store.
 
 use crate::auth::{Principal, Role};
 use crate::errors::{internal, invalid};
@@ -29,7 +30,14 @@ impl InputKind {
         }
     }
 
-    fn to_pb(self) -> pb::UploadKind {
+    /// The kind stored as [`InputKind::as_str`].
+    pub fn parse(name: &str) -> Option<InputKind> {
+        [InputKind::Dataset, InputKind::Style]
+            .into_iter()
+            .find(|kind| kind.as_str() == name)
+    }
+
+    pub fn to_pb(self) -> pb::UploadKind {
         match self {
             InputKind::Dataset => pb::UploadKind::DatasetArchive,
             InputKind::Style => pb::UploadKind::StyleImage,
@@ -64,7 +72,153 @@ async fn validate_file(
     .map_err(internal)
 }
 
-fn spool_file(shared: &Shared) -> Result<tempfile::NamedTempFile, Status> {
+/// The input kind an upload declares; `field` names it in errors.
+pub fn upload_kind(field: &str, kind: i32) -> Result<InputKind, Status> {
+    match pb::UploadKind::try_from(kind) {
+        Ok(pb::UploadKind::DatasetArchive) => Ok(InputKind::Dataset),
+        Ok(pb::UploadKind::StyleImage) => Ok(InputKind::Style),
+        _ => Err(invalid(field, "must be DATASET_ARCHIVE or STYLE_IMAGE")),
+    }
+}
+
+/// The largest input of `kind` the coordinator accepts.
+pub fn size_limit(shared: &Shared, kind: InputKind) -> u64 {
+    match kind {
+        InputKind::Dataset => shared.config.limits.max_dataset_bytes,
+        InputKind::Style => shared.config.limits.max_style_bytes,
+    }
+}
+
+/// Checks an upload's file name; returns it trimmed.
+pub fn check_filename<'a>(field: &str, filename: &'a str) -> Result<&'a str, Status> {
+    let filename = filename.trim();
+    if filename.is_empty()
+        || filename.len() > 255
+        || filename.contains(['/', '\\'])
+        || filename.chars().any(char::is_control)
+        || filename.starts_with('.')
+    {
+        return Err(invalid(
+            field,
+            "must be a plain file name (no directories, 1-255 characters, not starting with `.`)",
+        ));
+    }
+    Ok(filename)
+}
+
+/// Checks a declared size against the limit of `kind` (`allow_zero`: 0 means "not declared").
+pub fn check_declared_size(
+    shared: &Shared,
+    field: &str,
+    kind: InputKind,
+    size: u64,
+    allow_zero: bool,
+) -> Result<(), Status> {
+    let limit = size_limit(shared, kind);
+    if size == 0 && !allow_zero {
+        return Err(invalid(field, "must be greater than 0"));
+    }
+    if size > limit {
+        return Err(invalid(
+            field,
+            format!(
+                "{size} bytes is more than the {} limit of {limit} bytes",
+                kind.as_str()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// A complete input received into a local spool file, its size and SHA-256 already checked.
+pub struct Received<'a> {
+    pub kind: InputKind,
+    pub filename: &'a str,
+    pub path: &'a std::path::Path,
+    pub size: u64,
+    pub sha256: String,
+}
+
+/// An input validated and stored under `uploads/<id>/`, whose row is not yet inserted.
+pub struct StoredUpload {
+    receipt: pb::UploadReceipt,
+    key: String,
+    filename: String,
+    kind: InputKind,
+}
+
+impl StoredUpload {
+    /// Inserts the upload's row for `owner` (in the caller's transaction, if any).
+    pub async fn insert<'e>(
+        self,
+        owner: &str,
+        db: impl sqlx::SqliteExecutor<'e>,
+    ) -> Result<pb::UploadReceipt, Status> {
+        sqlx::query(
+            "INSERT INTO uploads (id, owner, kind, key, filename, size, sha256, summary, \
+             created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(&self.receipt.upload_id)
+        .bind(owner)
+        .bind(self.kind.as_str())
+        .bind(&self.key)
+        .bind(&self.filename)
+        .bind(self.receipt.size as i64)
+        .bind(&self.receipt.sha256)
+        .bind(&self.receipt.summary)
+        .bind(now_ms())
+        .execute(db)
+        .await
+        .map_err(internal)?;
+        Ok(self.receipt)
+    }
+}
+
+/// Validates a received input and stores its object (the row is the caller's to insert).
+pub async fn store_upload(shared: &Shared, input: Received<'_>) -> Result<StoredUpload, Status> {
+    let (summary, extension) = validate_file(shared, input.kind, input.path.to_path_buf())
+        .await?
+        .map_err(|why| invalid("data", why))?;
+    let id = format!("u-{}", uuid::Uuid::now_v7().simple());
+    let key = format!("uploads/{id}/{}.{extension}", input.kind.as_str());
+    shared
+        .storage
+        .put_file(&key, input.path)
+        .await
+        .map_err(internal)?;
+    Ok(StoredUpload {
+        receipt: pb::UploadReceipt {
+            upload_id: id,
+            kind: input.kind.to_pb() as i32,
+            size: input.size,
+            sha256: input.sha256,
+            summary,
+        },
+        key,
+        filename: input.filename.to_string(),
+        kind: input.kind,
+    })
+}
+
+/// The receipt of a stored upload.
+pub async fn upload_receipt(shared: &Shared, upload_id: &str) -> Result<pb::UploadReceipt, Status> {
+    let (kind, size, sha256, summary): (String, i64, String, String) =
+        sqlx::query_as("SELECT kind, size, sha256, summary FROM uploads WHERE id = ?")
+            .bind(upload_id)
+            .fetch_one(&shared.db.read)
+            .await
+            .map_err(internal)?;
+    Ok(pb::UploadReceipt {
+        upload_id: upload_id.to_string(),
+        kind: InputKind::parse(&kind).map_or(pb::UploadKind::Unspecified, InputKind::to_pb) as i32,
+        size: size as u64,
+        sha256,
+        summary,
+    })
+}
+
+/// A new spool file for received bytes.
+pub fn spool_file(shared: &Shared) -> Result<tempfile::NamedTempFile, Status> {
     match &shared.config.spool_dir {
         Some(dir) => tempfile::NamedTempFile::new_in(dir),
         None => tempfile::NamedTempFile::new(),
@@ -93,45 +247,9 @@ where
             ))
         }
     };
-    let kind = match pb::UploadKind::try_from(header.kind) {
-        Ok(pb::UploadKind::DatasetArchive) => InputKind::Dataset,
-        Ok(pb::UploadKind::StyleImage) => InputKind::Style,
-        _ => {
-            return Err(invalid(
-                "header.kind",
-                "must be DATASET_ARCHIVE or STYLE_IMAGE",
-            ))
-        }
-    };
-    let limit = match kind {
-        InputKind::Dataset => shared.config.limits.max_dataset_bytes,
-        InputKind::Style => shared.config.limits.max_style_bytes,
-    };
-    let filename = header.filename.trim();
-    if filename.is_empty()
-        || filename.len() > 255
-        || filename.contains(['/', '\\'])
-        || filename.chars().any(char::is_control)
-        || filename.starts_with('.')
-    {
-        return Err(invalid(
-            "header.filename",
-            "must be a plain file name (no directories, 1-255 characters, not starting with `.`)",
-        ));
-    }
-    if header.total_size == 0 {
-        return Err(invalid("header.total_size", "must be greater than 0"));
-    }
-    if header.total_size > limit {
-        return Err(invalid(
-            "header.total_size",
-            format!(
-                "{} bytes is more than the {} limit of {limit} bytes",
-                header.total_size,
-                kind.as_str()
-            ),
-        ));
-    }
+    let kind = upload_kind("header.kind", header.kind)?;
+    let filename = check_filename("header.filename", &header.filename)?;
+    check_declared_size(shared, "header.total_size", kind, header.total_size, false)?;
     check_sha256("header.sha256", &header.sha256)?;
 
     let spool = spool_file(shared)?;
@@ -176,40 +294,18 @@ where
             format!("checksum mismatch: the uploaded data has SHA-256 {actual}"),
         ));
     }
-    let (summary, extension) = validate_file(shared, kind, spool.path().to_path_buf())
-        .await?
-        .map_err(|why| invalid("data", why))?;
-
-    let id = format!("u-{}", uuid::Uuid::now_v7().simple());
-    let key = format!("uploads/{id}/{}.{extension}", kind.as_str());
-    shared
-        .storage
-        .put_file(&key, spool.path())
-        .await
-        .map_err(internal)?;
-    sqlx::query(
-        "INSERT INTO uploads (id, owner, kind, key, filename, size, sha256, summary, created_at) \
-         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+    let stored = store_upload(
+        shared,
+        Received {
+            kind,
+            filename,
+            path: spool.path(),
+            size: received,
+            sha256: actual,
+        },
     )
-    .bind(&id)
-    .bind(&caller.name)
-    .bind(kind.as_str())
-    .bind(&key)
-    .bind(filename)
-    .bind(received as i64)
-    .bind(&actual)
-    .bind(&summary)
-    .bind(now_ms())
-    .execute(&shared.db.write)
-    .await
-    .map_err(internal)?;
-    Ok(pb::UploadReceipt {
-        upload_id: id,
-        kind: kind.to_pb() as i32,
-        size: received,
-        sha256: actual,
-        summary,
-    })
+    .await?;
+    stored.insert(&caller.name, &shared.db.write).await
 }
 
 /// Resolves an `InputRef` to the object key of a validated input and the extension to copy
@@ -260,10 +356,7 @@ pub async fn resolve_input(
             if !may_read_object(shared, caller, key).await? {
                 return Err(unreadable());
             }
-            let limit = match kind {
-                InputKind::Dataset => shared.config.limits.max_dataset_bytes,
-                InputKind::Style => shared.config.limits.max_style_bytes,
-            };
+            let limit = size_limit(shared, kind);
             let size = match shared.storage.size(key).await {
                 Err(status) if status.code() == tonic::Code::NotFound => return Err(unreadable()),
                 other => other?,

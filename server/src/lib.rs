@@ -24,6 +24,7 @@ mod rpc_metrics;
 mod scheduler;
 mod state;
 pub mod storage;
+mod upload_sessions;
 pub mod validation;
 mod webhooks;
 mod writer;

@@ -1,7 +1,7 @@
 //! The state shared by the services and background tasks of one coordinator: database,
 //! storage, configuration, the live event feed, the "tasks became ready" notifier for
-//! long-polling workers, the group-commit writer, the shutdown signal, and the bound on
-//! concurrent input validations.
+//! long-polling workers, the group-commit writer, the shutdown signal, the bound on concurrent
+//! input validations, and the upload sessions in use.
 
 use crate::config::CoordinatorConfig;
 use crate::db::Db;
@@ -39,6 +39,8 @@ pub struct Shared {
     pub queue_series: Mutex<std::collections::BTreeSet<(&'static str, &'static str, String)>>,
     /// The HTTP download endpoint, when the coordinator serves one (`--http-listen`).
     pub downloads: Option<crate::http_download::Downloads>,
+    /// Resumable upload sessions being appended to or finished now (one call at a time each).
+    pub busy_upload_sessions: Mutex<std::collections::HashSet<String>>,
 }
 
 impl Shared {

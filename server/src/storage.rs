@@ -171,12 +171,27 @@ impl Storage {
 
     /// Reads a whole object into a local file (for validating staged datasets).
     pub async fn get_to_file(&self, key: &str, file: &std::path::Path) -> Result<u64, Status> {
+        let mut out = tokio::fs::File::create(file).await.map_err(internal)?;
+        let size = self.append_to(key, &mut out, |_| {}).await?;
+        // tokio hands writes to a blocking thread: without this the last one may still be in
+        // flight when the caller reads the file.
+        out.flush().await.map_err(internal)?;
+        Ok(size)
+    }
+
+    /// Appends a whole object to `out`, handing each piece to `seen` as well (to hash it);
+    /// returns the object's size. The caller flushes `out`.
+    pub async fn append_to(
+        &self,
+        key: &str,
+        out: &mut tokio::fs::File,
+        mut seen: impl FnMut(&[u8]),
+    ) -> Result<u64, Status> {
         let result = self
             .store
             .get(&ObjectPath::from(key))
             .await
             .map_err(|e| storage_status(key, e))?;
-        let mut out = tokio::fs::File::create(file).await.map_err(internal)?;
         let mut stream = result.into_stream();
         let mut size = 0u64;
         while let Some(chunk) = stream
@@ -185,11 +200,9 @@ impl Storage {
             .map_err(|e| storage_status(key, e))?
         {
             size += chunk.len() as u64;
+            seen(&chunk);
             out.write_all(&chunk).await.map_err(internal)?;
         }
-        // tokio hands writes to a blocking thread: without this the last one may still be in
-        // flight when the caller reads the file.
-        out.flush().await.map_err(internal)?;
         Ok(size)
     }
 

@@ -2,7 +2,8 @@
 //! processes of this binary on loopback (real SQLite file, real object store folder, the real
 //! engine on the `tiny` preset); jobs are submitted while processes are killed with SIGKILL at
 //! random moments — workers, and the coordinator (once, while a stage runs, with an outage of
-//! eight seconds, so that stages finish while it is away) — and restarted. At the end every
+//! eight seconds, so that stages finish while it is away) — and restarted; one worker kill is
+//! aimed, at the first worker seen holding a task with a checkpoint in the store. At the end every
 //! acknowledged job must exist and have succeeded, each of its stages must have succeeded
 //! exactly once (its event log), and a killed worker must have run at most one checkpoint
 //! interval since its newest checkpoint, which the next attempt resumes from (or from a newer
@@ -329,6 +330,7 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
     let mut losses: BTreeMap<u64, Vec<Loss>> = BTreeMap::new();
     let mut outage_done = false;
     let mut outage_waits = 0;
+    let mut stored_kill_done = false;
 
     let spec = |i: usize| {
         let mut spec = JobSpec::new(Input::path(&scene), [Input::path(&style)]);
@@ -363,6 +365,26 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
         if report.worker_kills + report.coordinator_kills >= kills {
             continue;
         }
+        // One kill is kept for this: as soon as a worker holds a task with a checkpoint in
+        // the store, that worker, so that the resume from the store is exercised whatever the
+        // timing of the random kills (given up only when no task is left to run).
+        if !stored_kill_done {
+            if let Some(victim) =
+                worker_with_stored_checkpoint(&cluster, &acknowledged, &store).await
+            {
+                kill_worker(&mut cluster, victim, &acknowledged, &store, &mut losses).await?;
+                report.worker_kills += 1;
+                stored_kill_done = true;
+                continue;
+            }
+            if acknowledged.len() == args.jobs && all_terminal(&cluster, &acknowledged).await {
+                stored_kill_done = true;
+            }
+        }
+        if report.worker_kills + report.coordinator_kills + usize::from(!stored_kill_done) >= kills
+        {
+            continue;
+        }
         // Once, as soon as a stage runs, a long outage: the stage finishes (or checkpoints)
         // while the coordinator is away, and its worker retries until it is back.
         let outage = !outage_done && !acknowledged.is_empty();
@@ -391,36 +413,8 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
             cluster.restart_coordinator()?;
         } else {
             let victim = rng.below(cluster.workers.len());
-            let (id, mut process) = cluster.workers.swap_remove(victim);
-            // What it was running, and the checkpoints stored, just before it dies.
-            let running = match Client::connect(&cluster.endpoint, None).await {
-                Ok(client) => leased_by(&client, &acknowledged, &id).await,
-                Err(_) => Vec::new(),
-            };
-            process.kill();
+            kill_worker(&mut cluster, victim, &acknowledged, &store, &mut losses).await?;
             report.worker_kills += 1;
-            // Stages that checkpoint (the render stages restart their frames instead).
-            let checkpointed = [
-                pb::Stage::NerfPretrain,
-                pb::Stage::DecoderPretrain,
-                pb::Stage::MutualLearning,
-            ];
-            for task in running
-                .into_iter()
-                .filter(|t| checkpointed.contains(&t.stage()))
-            {
-                let local = dir
-                    .join("scratch")
-                    .join(&id)
-                    .join(format!("task-{}", task.id))
-                    .join("out/ckpt");
-                losses.entry(task.id).or_default().push(Loss {
-                    step: task.progress.as_ref().map_or(0, |p| p.step),
-                    local: newest_local_checkpoint(&local),
-                    stored: newest_stored_checkpoint(&store, &task.output_prefix).await,
-                });
-            }
-            cluster.spawn_worker()?;
         }
     }
 
@@ -476,6 +470,81 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
     report.wall_secs = started.elapsed().as_secs_f64();
     drop(cluster);
     Ok(report)
+}
+
+/// Stages that checkpoint (the render stages restart their frames instead).
+const CHECKPOINTED: [pb::Stage; 3] = [
+    pb::Stage::NerfPretrain,
+    pb::Stage::DecoderPretrain,
+    pb::Stage::MutualLearning,
+];
+
+/// SIGKILLs worker `victim` (an index into the cluster's workers) and starts a fresh one,
+/// recording what the kill cost each checkpointed task it held: its step, and its newest
+/// checkpoints locally and in the store just before it died.
+async fn kill_worker(
+    cluster: &mut Cluster,
+    victim: usize,
+    jobs: &[String],
+    store: &Storage,
+    losses: &mut BTreeMap<u64, Vec<Loss>>,
+) -> anyhow::Result<()> {
+    let (id, mut process) = cluster.workers.swap_remove(victim);
+    let running = match Client::connect(&cluster.endpoint, None).await {
+        Ok(client) => leased_by(&client, jobs, &id).await,
+        Err(_) => Vec::new(),
+    };
+    process.kill();
+    for task in running
+        .into_iter()
+        .filter(|t| CHECKPOINTED.contains(&t.stage()))
+    {
+        let local = cluster
+            .dir
+            .join("scratch")
+            .join(&id)
+            .join(format!("task-{}", task.id))
+            .join("out/ckpt");
+        losses.entry(task.id).or_default().push(Loss {
+            step: task.progress.as_ref().map_or(0, |p| p.step),
+            local: newest_local_checkpoint(&local),
+            stored: newest_stored_checkpoint(store, &task.output_prefix).await,
+        });
+    }
+    cluster.spawn_worker()
+}
+
+/// The index of a worker that holds a checkpointed task with a checkpoint in the store now.
+async fn worker_with_stored_checkpoint(
+    cluster: &Cluster,
+    jobs: &[String],
+    store: &Storage,
+) -> Option<usize> {
+    let client = Client::connect(&cluster.endpoint, None).await.ok()?;
+    for (index, (id, _)) in cluster.workers.iter().enumerate() {
+        for task in leased_by(&client, jobs, id).await {
+            if CHECKPOINTED.contains(&task.stage())
+                && newest_stored_checkpoint(store, &task.output_prefix).await > 0
+            {
+                return Some(index);
+            }
+        }
+    }
+    None
+}
+
+/// Whether every job of `jobs` has ended (false while the coordinator is away).
+async fn all_terminal(cluster: &Cluster, jobs: &[String]) -> bool {
+    let Ok(client) = Client::connect(&cluster.endpoint, None).await else {
+        return false;
+    };
+    for job in jobs {
+        match client.get(job).await {
+            Ok(job) if is_terminal(&job) => {}
+            _ => return false,
+        }
+    }
+    true
 }
 
 fn is_terminal(job: &pb::Job) -> bool {

@@ -729,6 +729,49 @@ impl JobService for JobApi {
         }))
     }
 
+    async fn start_upload(
+        &self,
+        request: Request<pb::StartUploadRequest>,
+    ) -> Result<Response<pb::UploadSession>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let session =
+            crate::upload_sessions::start(&self.shared, &caller, request.into_inner()).await?;
+        Ok(Response::new(session))
+    }
+
+    async fn append_upload(
+        &self,
+        request: Request<Streaming<pb::UploadSessionChunk>>,
+    ) -> Result<Response<pb::UploadSession>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let session =
+            crate::upload_sessions::append(self.shared.clone(), caller, request.into_inner())
+                .await?;
+        Ok(Response::new(session))
+    }
+
+    async fn get_upload_session(
+        &self,
+        request: Request<pb::GetUploadSessionRequest>,
+    ) -> Result<Response<pb::UploadSession>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let session =
+            crate::upload_sessions::get(&self.shared, &caller, &request.get_ref().session_id)
+                .await?;
+        Ok(Response::new(session))
+    }
+
+    async fn finish_upload(
+        &self,
+        request: Request<pb::FinishUploadRequest>,
+    ) -> Result<Response<pb::UploadReceipt>, Status> {
+        let caller = require(&request, CLIENT_ROLES)?;
+        let receipt =
+            crate::upload_sessions::finish(&self.shared, &caller, request.into_inner()).await?;
+        tracing::info!(upload = %receipt.upload_id, owner = %caller.name, summary = %receipt.summary, "resumable upload accepted");
+        Ok(Response::new(receipt))
+    }
+
     async fn list_artifacts(
         &self,
         request: Request<pb::ListArtifactsRequest>,

@@ -16,6 +16,7 @@ mod restart;
 mod retention;
 mod support;
 mod tls;
+mod upload_sessions;
 mod uploads;
 mod watch_all;
 mod webhooks;
