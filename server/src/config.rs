@@ -66,6 +66,8 @@ pub struct CoordinatorConfig {
     pub retention_sweep_interval: Duration,
     /// A resumable upload session unused for this long is deleted with its bytes.
     pub upload_session_ttl: Duration,
+    /// What each owner may use at once (running tasks, stored bytes).
+    pub quotas: Quotas,
     /// Accepted preset names.
     pub presets: Vec<String>,
     pub limits: Limits,
@@ -144,6 +146,52 @@ impl Default for Limits {
     }
 }
 
+/// One owner's quota; 0 = no limit.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Quota {
+    /// Most tasks of the owner's jobs leased at once.
+    #[serde(default)]
+    pub running_tasks: u32,
+    /// Most bytes stored for the owner: uploads, open upload sessions and job outputs.
+    #[serde(default, rename = "stored_gib", deserialize_with = "gib_to_bytes")]
+    pub stored_bytes: u64,
+}
+
+/// `gib` GiB in bytes, if it is zero or positive (`name` names it in the error).
+fn gib_bytes(gib: f64, name: &str) -> Result<u64, String> {
+    if gib.is_finite() && gib >= 0.0 {
+        Ok((gib * (1u64 << 30) as f64) as u64)
+    } else {
+        Err(format!(
+            "{name} must be zero or a positive number, not {gib}"
+        ))
+    }
+}
+
+fn gib_to_bytes<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Error> {
+    gib_bytes(f64::deserialize(d)?, "stored_gib").map_err(serde::de::Error::custom)
+}
+
+/// Per-owner quotas: a default for every owner, and owners of their own.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Quotas {
+    pub default: Quota,
+    pub owners: std::collections::BTreeMap<String, Quota>,
+}
+
+impl Quotas {
+    /// The quota of `owner`.
+    pub fn of(&self, owner: &str) -> Quota {
+        self.owners.get(owner).copied().unwrap_or(self.default)
+    }
+
+    /// Whether any owner has a running-task limit (the scheduler then counts).
+    pub fn limits_running_tasks(&self) -> bool {
+        self.default.running_tasks > 0 || self.owners.values().any(|q| q.running_tasks > 0)
+    }
+}
+
 /// The default preset names (the engine's presets).
 pub const DEFAULT_PRESETS: &[&str] = &["tiny", "quick", "standard", "paper"];
 
@@ -174,6 +222,7 @@ impl CoordinatorConfig {
             retention: None,
             retention_sweep_interval: Duration::from_secs(3600),
             upload_session_ttl: Duration::from_secs(24 * 3600),
+            quotas: Quotas::default(),
             backups_kept: 48,
             restore_from_backup: false,
             presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
@@ -275,6 +324,14 @@ pub struct CoordinatorArgs {
     /// without an append [default: 24].
     #[arg(long, env = "STYLENERF_UPLOAD_SESSION_HOURS")]
     pub upload_session_hours: Option<f64>,
+    /// Most tasks of one owner's jobs running at once; 0 = no limit [default: 0]. Owners of
+    /// their own: `[quotas.<name>]` in the config file.
+    #[arg(long, env = "STYLENERF_MAX_RUNNING_TASKS_PER_OWNER")]
+    pub max_running_tasks_per_owner: Option<u32>,
+    /// Most GiB stored for one owner (uploads, upload sessions, job outputs); new uploads and
+    /// jobs are refused beyond; 0 = no limit [default: 0].
+    #[arg(long, env = "STYLENERF_MAX_STORED_GIB_PER_OWNER")]
+    pub max_stored_gib_per_owner: Option<f64>,
     /// Accepted preset names, comma-separated [default: tiny,quick,standard,paper].
     #[arg(long, env = "STYLENERF_PRESETS", value_delimiter = ',')]
     pub presets: Option<Vec<String>>,
@@ -316,6 +373,11 @@ struct FileConfig {
     restore_from_backup: Option<bool>,
     retention_days: Option<f64>,
     upload_session_hours: Option<f64>,
+    max_running_tasks_per_owner: Option<u32>,
+    max_stored_gib_per_owner: Option<f64>,
+    /// Owners' own quotas, by principal name.
+    #[serde(default)]
+    quotas: std::collections::BTreeMap<String, Quota>,
     webhook_allow_private: Option<bool>,
     http_listen: Option<SocketAddr>,
     public_url: Option<String>,
@@ -446,6 +508,20 @@ impl CoordinatorArgs {
             true,
         )?;
         config.retention = (!retention.is_zero()).then_some(retention);
+        if let Some(n) = self
+            .max_running_tasks_per_owner
+            .or(file.max_running_tasks_per_owner)
+        {
+            config.quotas.default.running_tasks = n;
+        }
+        if let Some(gib) = self
+            .max_stored_gib_per_owner
+            .or(file.max_stored_gib_per_owner)
+        {
+            config.quotas.default.stored_bytes =
+                gib_bytes(gib, "max_stored_gib_per_owner").map_err(anyhow::Error::msg)?;
+        }
+        config.quotas.owners = file.quotas;
         config.upload_session_ttl = seconds(
             self.upload_session_hours
                 .or(file.upload_session_hours)
@@ -501,5 +577,67 @@ fn seconds(
             anyhow::bail!("{name} must be zero or a positive number of seconds, not {s}")
         }
         Some(s) => anyhow::bail!("{name} must be a positive number of seconds, not {s}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: CoordinatorArgs,
+    }
+
+    fn config_from(file: &str, flags: &[&str]) -> anyhow::Result<CoordinatorConfig> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("coordinator.toml");
+        std::fs::write(&path, file).unwrap();
+        let path = path.to_str().unwrap();
+        let mut argv = vec!["coordinator", "--insecure-no-auth", "--config", path];
+        argv.extend(flags);
+        Cli::parse_from(argv).args.into_config()
+    }
+
+    #[test]
+    fn quotas_come_from_flags_and_owners_from_the_file() {
+        let file = "max_stored_gib_per_owner = 0.5\n\
+                    [quotas.bob]\nrunning_tasks = 8\nstored_gib = 2\n\
+                    [quotas.carol]\nrunning_tasks = 1\n";
+        let config = config_from(file, &["--max-running-tasks-per-owner", "3"]).unwrap();
+        let quotas = &config.quotas;
+        assert_eq!(
+            quotas.of("alice"),
+            Quota {
+                running_tasks: 3,
+                stored_bytes: 1 << 29
+            }
+        );
+        assert_eq!(
+            quotas.of("bob"),
+            Quota {
+                running_tasks: 8,
+                stored_bytes: 2 << 30
+            }
+        );
+        // An owner's own quota replaces the default as a whole: carol stores without limit.
+        assert_eq!(quotas.of("carol").stored_bytes, 0);
+        assert!(quotas.limits_running_tasks());
+        assert!(!Quotas::default().limits_running_tasks());
+    }
+
+    #[test]
+    fn bad_quotas_are_refused_with_their_name() {
+        let err = config_from("[quotas.bob]\nstored_gib = -1\n", &[]).unwrap_err();
+        assert!(format!("{err:#}").contains("stored_gib"), "{err:#}");
+        let err = config_from("[quotas.bob]\nrunning = 1\n", &[]).unwrap_err();
+        assert!(format!("{err:#}").contains("running"), "{err:#}");
+        let err = config_from("", &["--max-stored-gib-per-owner", "NaN"]).unwrap_err();
+        assert!(
+            err.to_string().contains("max_stored_gib_per_owner"),
+            "{err:#}"
+        );
     }
 }

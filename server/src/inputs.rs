@@ -251,6 +251,13 @@ where
     let filename = check_filename("header.filename", &header.filename)?;
     check_declared_size(shared, "header.total_size", kind, header.total_size, false)?;
     check_sha256("header.sha256", &header.sha256)?;
+    crate::quotas::check_storage(
+        shared,
+        &caller.name,
+        header.total_size,
+        &format!("this upload of {} bytes", header.total_size),
+    )
+    .await?;
 
     let spool = spool_file(shared)?;
     let mut file = tokio::fs::File::create(spool.path())

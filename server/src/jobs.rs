@@ -89,6 +89,8 @@ pub struct NewJob {
     pub priority: i32,
     /// Epoch ms by which the job must end; 0 = none.
     pub deadline_at: i64,
+    /// Size of the copied inputs (counted in the owner's stored bytes).
+    pub input_bytes: u64,
 }
 
 /// The job of `owner` with this idempotency key, if any.
@@ -141,7 +143,8 @@ pub async fn insert_job(
     let inserted = sqlx::query(
         "INSERT INTO jobs (id, owner, name, state, preset, overrides, require_cuda, labels, \
          memory_bytes, dataset_key, style_keys, idempotency_key, created_at, updated_at, \
-         metadata, priority, deadline_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
+         metadata, priority, deadline_at, input_bytes) \
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
          ON CONFLICT (owner, idempotency_key) WHERE idempotency_key IS NOT NULL DO NOTHING",
     )
     .bind(&job.id)
@@ -161,6 +164,7 @@ pub async fn insert_job(
     .bind(serde_json::to_string(&job.metadata).unwrap_or_else(|_| "{}".into()))
     .bind(job.priority)
     .bind(job.deadline_at)
+    .bind(job.input_bytes.min(i64::MAX as u64) as i64)
     .execute(&mut *conn)
     .await?
     .rows_affected();

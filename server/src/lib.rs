@@ -19,6 +19,7 @@ mod inputs;
 mod jobs;
 pub mod metrics_http;
 mod model;
+mod quotas;
 mod retention;
 mod rpc_metrics;
 mod scheduler;
@@ -31,6 +32,8 @@ mod writer;
 
 pub use api::job_api::CAMERA_PATH_KINDS;
 pub use auth::{AuthConfig, Role, TokenEntry};
-pub use config::{CoordinatorArgs, CoordinatorConfig, Limits, SettingsCheck, TlsConfig};
+pub use config::{
+    CoordinatorArgs, CoordinatorConfig, Limits, Quota, Quotas, SettingsCheck, TlsConfig,
+};
 pub use coordinator::{Coordinator, CoordinatorHandle};
 pub use stylenerf_proto as proto;

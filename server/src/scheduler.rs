@@ -1,9 +1,11 @@
-//! Task scheduling: worker registration, leasing (oldest ready task first, matched against the
-//! worker's device, labels and free memory), heartbeats that extend leases, completion and
+//! Task scheduling: worker registration, leasing (highest priority, then oldest ready task
+//! first, matched against the worker's device, labels and free memory, and skipping owners at
+//! their running-task quota), heartbeats that extend leases, completion and
 //! failure under fencing tokens, promotion of dependent tasks, and requeueing of expired leases.
 //! Every state change happens in one write transaction, group-committed by `writer`.
 
 use crate::auth::Principal;
+use crate::config::Quotas;
 use crate::errors::{internal, invalid};
 use crate::events::{EventBatch, NewEvent, JOB_STATE, TASK_PROGRESS};
 use crate::jobs::{cancel_open_tasks, set_job_state, TaskRow};
@@ -12,8 +14,9 @@ use crate::state::Shared;
 use crate::writer::{OpError, OpResult};
 use futures::FutureExt;
 use sqlx::SqliteConnection;
-use std::collections::{BTreeMap, HashSet};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::atomic::Ordering;
+use std::sync::Arc;
 use stylenerf_proto::v1 as pb;
 use tonic::Status;
 
@@ -181,12 +184,33 @@ pub async fn try_lease(
         <= now;
     let ttl = shared.config.lease_ttl.as_millis() as i64;
     let worker = worker_id.to_string();
+    // Counted per lease only where some owner has a running-task limit.
+    let quotas = Arc::new(
+        shared
+            .config
+            .quotas
+            .limits_running_tasks()
+            .then(|| shared.config.quotas.clone()),
+    );
     let (leased, requeued) = shared
         .writer
         .write(move |conn, batch| {
             let worker_id = worker.clone();
-            async move { lease_in(conn, batch, &worker_id, free_memory, ttl, check_expiry).await }
-                .boxed()
+            let quotas = quotas.clone();
+            async move {
+                let quotas = quotas.as_ref().as_ref();
+                lease_in(
+                    conn,
+                    batch,
+                    &worker_id,
+                    free_memory,
+                    ttl,
+                    check_expiry,
+                    quotas,
+                )
+                .await
+            }
+            .boxed()
         })
         .await??;
     if requeued {
@@ -199,8 +223,9 @@ pub async fn try_lease(
     assignment(shared, task).await.map(Some).map_err(internal)
 }
 
-/// The lease transaction's work: requeues expired leases when asked to, then claims the oldest
-/// ready task the worker can run. Returns the claimed task and whether tasks were requeued.
+/// The lease transaction's work: requeues expired leases when asked to, then claims the first
+/// ready task (by priority, then age) the worker can run and whose owner is below its
+/// running-task quota. Returns the claimed task and whether tasks were requeued.
 async fn lease_in(
     conn: &mut SqliteConnection,
     batch: &mut EventBatch,
@@ -208,6 +233,7 @@ async fn lease_in(
     free_memory: u64,
     ttl: i64,
     check_expiry: bool,
+    quotas: Option<&Quotas>,
 ) -> OpResult<Result<(Option<TaskRow>, bool), Status>> {
     let now = now_ms();
     let requeued = check_expiry && expire_leases(conn, batch, now).await?;
@@ -241,9 +267,11 @@ async fn lease_in(
     let labels: HashSet<String> = serde_json::from_str(&worker.labels).unwrap_or_default();
     // Look at the head of the queue first; only a worker that matches none of it (labels)
     // searches deeper.
+    // Owners found at their running-task quota in this lease.
+    let mut at_quota: HashMap<String, bool> = HashMap::new();
     for window in [8i64, 1024] {
-        let candidates: Vec<(i64, String, i64, bool)> = sqlx::query_as(
-            "SELECT t.id, j.labels, t.ready_at, j.require_cuda FROM tasks t \
+        let candidates: Vec<(i64, String, i64, bool, String)> = sqlx::query_as(
+            "SELECT t.id, j.labels, t.ready_at, j.require_cuda, j.owner FROM tasks t \
              JOIN jobs j ON j.id = t.job_id \
              WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
              ORDER BY t.priority DESC, t.ready_at, t.id LIMIT ?",
@@ -254,13 +282,28 @@ async fn lease_in(
         .fetch_all(&mut *conn)
         .await?;
         let seen = candidates.len() as i64;
-        let chosen = candidates.into_iter().find(|(_, job_labels, _, _)| {
-            serde_json::from_str::<Vec<String>>(job_labels)
+        let mut chosen = None;
+        for (task_id, job_labels, ready_at, require_cuda, owner) in candidates {
+            let runnable = serde_json::from_str::<Vec<String>>(&job_labels)
                 .unwrap_or_default()
                 .iter()
-                .all(|l| labels.contains(l))
-        });
-        if let Some((task_id, _, ready_at, require_cuda)) = chosen {
+                .all(|l| labels.contains(l));
+            if !runnable {
+                continue;
+            }
+            if let Some(quotas) = quotas {
+                if !at_quota.contains_key(&owner) {
+                    let full = owner_at_quota(conn, quotas, &owner).await?;
+                    at_quota.insert(owner.clone(), full);
+                }
+                if at_quota[&owner] {
+                    continue;
+                }
+            }
+            chosen = Some((task_id, ready_at, require_cuda));
+            break;
+        }
+        if let Some((task_id, ready_at, require_cuda)) = chosen {
             let task = claim(conn, batch, task_id, worker_id, now, ttl).await?;
             metrics::histogram!(
                 "stylenerf_queue_wait_seconds",
@@ -275,6 +318,26 @@ async fn lease_in(
         }
     }
     Ok(Ok((None, requeued)))
+}
+
+/// Whether `owner` has as many tasks leased as its quota allows.
+async fn owner_at_quota(
+    conn: &mut SqliteConnection,
+    quotas: &Quotas,
+    owner: &str,
+) -> Result<bool, sqlx::Error> {
+    let limit = quotas.of(owner).running_tasks;
+    if limit == 0 {
+        return Ok(false);
+    }
+    let running: i64 = sqlx::query_scalar(
+        "SELECT COUNT(*) FROM tasks t JOIN jobs j ON j.id = t.job_id \
+         WHERE t.state = 'leased' AND j.owner = ?",
+    )
+    .bind(owner)
+    .fetch_one(&mut *conn)
+    .await?;
+    Ok(running >= limit as i64)
 }
 
 /// Marks a ready task leased by `worker_id` under a new fencing token. The previous attempt's

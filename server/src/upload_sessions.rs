@@ -124,6 +124,13 @@ pub async fn start(
     let kind = upload_kind("kind", request.kind)?;
     let filename = check_filename("filename", &request.filename)?;
     check_declared_size(shared, "total_size", kind, request.total_size, true)?;
+    crate::quotas::check_storage(
+        shared,
+        &caller.name,
+        request.total_size,
+        &format!("an upload of {} bytes", request.total_size),
+    )
+    .await?;
     let open: i64 = sqlx::query_scalar(
         "SELECT COUNT(*) FROM upload_sessions WHERE owner = ? AND upload_id IS NULL",
     )
@@ -235,6 +242,7 @@ where
         0 => size_limit(shared, session.kind()),
         declared => declared as u64,
     };
+    let room = crate::quotas::storage_room(shared, &session.owner).await?;
     let spool = spool_file(shared)?;
     let mut file = tokio::fs::File::create(spool.path())
         .await
@@ -267,6 +275,15 @@ where
             return Err(invalid(
                 "data",
                 format!("more than {limit} bytes, {what}: nothing of this stream was kept"),
+            ));
+        }
+        if let Some(room) = room.filter(|room| received + data.len() as u64 > *room) {
+            let what = "this append (nothing of it was kept)";
+            return Err(crate::quotas::over_storage_quota(
+                shared,
+                &session.owner,
+                what,
+                room,
             ));
         }
         file.write_all(&data).await.map_err(internal)?;

@@ -291,6 +291,17 @@ impl JobApi {
                 .await?,
             );
         }
+        let mut input_bytes = shared.storage.size(&dataset_source).await?;
+        for (source, _) in &style_sources {
+            input_bytes += shared.storage.size(source).await?;
+        }
+        crate::quotas::check_storage(
+            shared,
+            &caller.name,
+            input_bytes,
+            &format!("a job whose inputs take {input_bytes} bytes"),
+        )
+        .await?;
         let job_id = format!("j-{}", uuid::Uuid::now_v7().simple());
         let dataset_key = format!("jobs/{job_id}/inputs/scene.tar");
         shared
@@ -326,6 +337,7 @@ impl JobApi {
             metadata: req.metadata.clone().into_iter().collect(),
             priority: req.priority,
             deadline_at: req.deadline_at_ms,
+            input_bytes,
         };
         let webhook_secret = new_job
             .webhook

@@ -11,6 +11,7 @@ mod metadata;
 mod metrics;
 mod priority;
 mod progress;
+mod quotas;
 mod reflection;
 mod restart;
 mod retention;
