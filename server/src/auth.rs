@@ -156,8 +156,13 @@ impl Authenticator {
         Ok(request)
     }
 
+    /// The principal of a request's `authorization: Bearer <token>` (the gRPC services' and
+    /// the web API's).
     #[allow(clippy::result_large_err)]
-    fn authenticate(&self, metadata: &tonic::metadata::MetadataMap) -> Result<Principal, Status> {
+    pub fn authenticate(
+        &self,
+        metadata: &tonic::metadata::MetadataMap,
+    ) -> Result<Principal, Status> {
         let Some(tokens) = &self.tokens else {
             return Ok(Principal {
                 name: "anonymous".into(),
@@ -190,8 +195,15 @@ pub fn require<T>(request: &Request<T>, roles: &[Role]) -> Result<Principal, Sta
         .get::<Principal>()
         .cloned()
         .ok_or_else(|| Status::unauthenticated("unauthenticated"))?;
+    require_role(&principal, roles)?;
+    Ok(principal)
+}
+
+/// PERMISSION_DENIED unless `principal` has one of `roles`.
+#[allow(clippy::result_large_err)]
+pub fn require_role(principal: &Principal, roles: &[Role]) -> Result<(), Status> {
     if roles.contains(&principal.role) {
-        Ok(principal)
+        Ok(())
     } else {
         Err(Status::permission_denied(format!(
             "a {:?} token may not call this service",

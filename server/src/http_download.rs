@@ -168,20 +168,24 @@ pub struct Downloads {
     pub public_url: String,
 }
 
-/// Serves the download endpoint on `listener` until `shutdown` turns true.
+/// Serves the download endpoint, with the web page and its JSON API (`web`), on `listener`
+/// until `shutdown` turns true.
 pub fn serve(
     listener: tokio::net::TcpListener,
     shared: Arc<Shared>,
     signer: UrlSigner,
     shutdown: watch::Receiver<bool>,
 ) -> tokio::task::JoinHandle<()> {
-    let app = axum::Router::new().route(
-        "/v1/artifacts/{*key}",
-        axum::routing::get(move |uri: axum::http::Uri| {
-            download(shared.clone(), signer.clone(), uri)
-        }),
-    );
-    crate::metrics_http::spawn_router(listener, app, shutdown, "HTTP download endpoint")
+    let web = crate::web::router(shared.clone());
+    let app = axum::Router::new()
+        .route(
+            "/v1/artifacts/{*key}",
+            axum::routing::get(move |uri: axum::http::Uri| {
+                download(shared.clone(), signer.clone(), uri)
+            }),
+        )
+        .merge(web);
+    crate::metrics_http::spawn_router(listener, app, shutdown, "HTTP endpoint")
 }
 
 #[cfg(test)]

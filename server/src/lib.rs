@@ -27,6 +27,7 @@ mod state;
 pub mod storage;
 mod upload_sessions;
 pub mod validation;
+mod web;
 mod webhooks;
 mod writer;
 

@@ -20,4 +20,5 @@ mod tls;
 mod upload_sessions;
 mod uploads;
 mod watch_all;
+mod web;
 mod webhooks;
