@@ -8,50 +8,12 @@
 //! `.ci/run` installs them). Without them the test says so and passes, unless
 //! `STYLENERF_REQUIRE_TEST_TOOLS` is set, as `.ci/run` does.
 
+mod support;
+
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// Processes killed when dropped.
-struct Processes(Vec<Child>);
-
-impl Drop for Processes {
-    fn drop(&mut self) {
-        for child in &mut self.0 {
-            let _ = child.kill();
-            let _ = child.wait();
-        }
-    }
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn stylenerf(dir: &Path, log: &str, args: &[&str]) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_stylenerf"))
-        .args(["--log", "info", "--log-format", "json"])
-        .args(args)
-        .env_remove("STYLENERF_LOG")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join(log)).unwrap())
-        .spawn()
-        .unwrap()
-}
-
-fn run(args: &[&str]) {
-    let status = Command::new(env!("CARGO_BIN_EXE_stylenerf"))
-        .args(["--log", "warn"])
-        .args(args)
-        .stdout(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(status.success(), "stylenerf {args:?}");
-}
+use support::{log_tail, run, Service, CLIENT_TOKEN};
 
 /// Python with grpcio and grpcio-tools, if there is one.
 fn python() -> Option<PathBuf> {
@@ -93,67 +55,25 @@ fn a_python_backend_gets_webhooks_and_downloads_through_a_url() {
     run(&["stylize", "export-styles", "--out", &dir_arg("styles")]);
     let scene = stylenerf_client::pack_scene(&d.join("scene")).unwrap();
 
-    let (grpc, http) = (free_port(), free_port());
-    let endpoint = format!("http://127.0.0.1:{grpc}");
-    let tokens = "client:web:client-token-0123456789,worker:pool:worker-token-0123456789";
-    let mut processes = Processes(vec![stylenerf(
-        d,
-        "coordinator.log",
-        &[
-            "coordinator",
-            "--listen",
-            &format!("127.0.0.1:{grpc}"),
-            "--metrics-listen",
-            "off",
-            "--http-listen",
-            &format!("127.0.0.1:{http}"),
-            "--webhook-allow-private",
-            "--database",
-            &dir_arg("coordinator.db"),
-            "--storage",
-            &dir_arg("store"),
-            "--tokens",
-            tokens,
-        ],
-    )]);
-    processes.0.push(stylenerf(
-        d,
-        "worker.log",
-        &[
-            "worker",
-            "--endpoint",
-            &endpoint,
-            "--token",
-            "worker-token-0123456789",
-            "--lease-wait-secs",
-            "1",
-            "--scratch-dir",
-            &dir_arg("scratch"),
-        ],
-    ));
+    let service = Service::start(d, &["--webhook-allow-private"]);
+    let (endpoint, http) = (service.endpoint.clone(), service.http.clone());
     let started = Instant::now();
     let output = Command::new(&python)
         .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/backend.py"))
-        .args([endpoint.as_str(), "client-token-0123456789"])
+        .args([endpoint.as_str(), CLIENT_TOKEN])
         .arg(&scene.path)
         .arg(d.join("styles").join("waves.png"))
         .arg(d)
         .output()
         .unwrap();
-    drop(processes);
+    drop(service);
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(
         output.status.success(),
         "backend.py failed after {:?}:\nstdout: {stdout}\nstderr: {}\ncoordinator log tail: {}",
         started.elapsed(),
         String::from_utf8_lossy(&output.stderr),
-        std::fs::read_to_string(d.join("coordinator.log"))
-            .unwrap_or_default()
-            .lines()
-            .rev()
-            .take(10)
-            .collect::<Vec<_>>()
-            .join("\n")
+        log_tail(d, "coordinator.log")
     );
     let report: serde_json::Value = serde_json::from_str(stdout.trim()).expect("one JSON line");
     assert_eq!(
@@ -162,6 +82,14 @@ fn a_python_backend_gets_webhooks_and_downloads_through_a_url() {
     );
     assert!(report["states"].as_array().unwrap().len() >= 2, "{report}");
     assert_eq!(report["content_type"], "image/gif");
+    // The link points at the coordinator's HTTP listener.
+    assert!(
+        report["url"]
+            .as_str()
+            .unwrap()
+            .starts_with(&format!("{http}/v1/artifacts/")),
+        "{report}"
+    );
     assert_eq!(report["gif"], true, "{report}");
     assert_eq!(report["sha256_matches"], true, "{report}");
     assert!(started.elapsed() < Duration::from_secs(600));

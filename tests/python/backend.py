@@ -133,6 +133,7 @@ print(
             "job_id": job_id,
             "states": states,
             "key": animation.key,
+            "url": link.url,
             "content_type": content_type,
             "bytes": len(data),
             "sha256_matches": hashlib.sha256(data).hexdigest() == animation.sha256,

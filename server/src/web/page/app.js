@@ -87,7 +87,7 @@ const badge = (state) => el("span", { class: `state ${state}` }, state);
 const terminal = (job) => ["succeeded", "failed", "cancelled"].includes(jobState(job));
 
 function show(...nodes) {
-  document.getElementById("main").replaceChildren(...nodes);
+  document.getElementById("main").replaceChildren(...nodes.filter(Boolean));
 }
 
 function failure(error) {
@@ -198,7 +198,8 @@ function plots(events) {
   const series = new Map();
   for (const event of events) {
     const p = event.progress;
-    if (!p || p.step === undefined) continue;
+    // Before its first step a stage has measured nothing (its loss reads 0).
+    if (!p || !Number(p.step)) continue;
     const stage = stageName(event.stage);
     const add = (what, value) => {
       if (!Number.isFinite(value)) return;
@@ -209,7 +210,10 @@ function plots(events) {
     if (p.loss !== undefined) add("loss", Number(p.loss));
     if (p.metrics && p.metrics.psnr !== undefined) add("PSNR (dB)", Number(p.metrics.psnr));
   }
-  const figures = [...series].filter(([, points]) => points.length >= 2).map(([title, points]) => plot(title, points));
+  // A curve needs two points; a constant one (a render stage's) says nothing.
+  const figures = [...series]
+    .filter(([, points]) => points.length >= 2 && points.some(([, y]) => y !== points[0][1]))
+    .map(([title, points]) => plot(title, points));
   return el("div", { class: "plots", id: "plots" },
     figures.length ? figures : el("p", { class: "muted" }, "Loss and PSNR appear here as the stages report progress."));
 }
@@ -286,9 +290,9 @@ async function jobView(id) {
         type: "button", id: "cancel",
         onclick: () => rpc("CancelJob", { job_id: id }).catch((e) => status.replaceChildren(failure(e))),
       }, "Cancel");
-      header.replaceChildren(el("h1", { id: "job-title" }, job.name || job.id, " ", badge(jobState(job))),
+      header.replaceChildren(...[el("h1", { id: "job-title" }, job.name || job.id, " ", badge(jobState(job))),
         el("p", { class: "muted" }, `${job.id} · preset ${job.preset} · ${(job.style_keys || []).length} styles · ${duration(elapsed)} since submission`),
-        job.error ? el("p", { class: "error" }, job.error) : null, cancel);
+        job.error ? el("p", { class: "error" }, job.error) : null, cancel].filter(Boolean));
       const parts = [el("section", {}, el("h2", {}, "Stages"), timeline(job)),
         el("section", {}, el("h2", {}, "Training curves"), plots(events)),
         blendForm(job),
