@@ -5,6 +5,7 @@
 pub mod camera;
 pub mod checkpoint;
 pub mod cpu_ops;
+pub mod curves;
 pub mod device;
 pub mod error;
 pub mod eval;

@@ -1,5 +1,6 @@
 //! Contact sheets a person can judge at a glance: a grid of equally sized tiles under a header
-//! row that names each column, drawn with an 8×8 bitmap font (no font file ships).
+//! row that names each column, drawn with an 8×8 bitmap font (no font file ships; `curves`
+//! writes with it too).
 
 use image::{Rgb, RgbImage};
 
@@ -18,7 +19,13 @@ fn header_scale(tile_width: u32, labels: &[&str]) -> u32 {
 
 /// Writes `text` at (x, y) in white, each font pixel a `scale`² block, clipped at `max_x`;
 /// characters outside ASCII are drawn as `?`.
-fn draw_text(img: &mut RgbImage, (x, y): (u32, u32), max_x: u32, text: &str, scale: u32) {
+pub(crate) fn draw_text(
+    img: &mut RgbImage,
+    (x, y): (u32, u32),
+    max_x: u32,
+    text: &str,
+    scale: u32,
+) {
     for (i, ch) in text.chars().enumerate() {
         let glyph = font8x8::legacy::BASIC_LEGACY[if ch.is_ascii() {
             ch as usize

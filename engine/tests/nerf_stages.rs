@@ -63,6 +63,10 @@ fn tiny_training_reaches_a_psnr_floor_and_renders_views() {
     let last = report.loss_log.last().unwrap().1;
     assert!(last < first * 0.7, "loss {first} -> {last}");
     assert!(out.join("field.json").exists() && out.join("metrics.json").exists());
+    assert!(
+        out.join("curves.png").exists(),
+        "training curves beside the metrics"
+    );
 
     let views_dir = tmp.path().join("views");
     let cfg = RenderViewsConfig::preset(Preset::Tiny);

@@ -108,6 +108,7 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
         "vae.safetensors",
         "styles.json",
         "metrics.json",
+        "curves.png",
         "sheets/style-0.png",
         "sheets/style-1.png",
     ] {

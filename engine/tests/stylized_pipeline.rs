@@ -156,6 +156,7 @@ fn mutual_learning_fits_the_decoder_and_resumes_exactly() {
         "latents.json",
         "decoder.safetensors",
         "metrics.json",
+        "curves.png",
     ] {
         assert!(full.join(f).exists(), "{f} missing");
     }

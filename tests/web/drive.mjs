@@ -56,9 +56,11 @@ try {
   // The job page follows the job live until it succeeds.
   await page.waitForSelector("#timeline tr[data-stage=nerf_pretrain]");
   await page.waitForSelector("#job-title .state.succeeded", { timeout });
-  await page.waitForFunction(
-    () => [...document.querySelectorAll("#results img")].some((img) => img.complete && img.naturalWidth > 0),
-    null, { timeout: 30000 });
+  // Every result image loaded (the list is redrawn while polling: wait for all of them).
+  await page.waitForFunction(() => {
+    const imgs = [...document.querySelectorAll("#results img")];
+    return imgs.length > 0 && imgs.every((img) => img.complete && img.naturalWidth > 0);
+  }, null, { timeout: 30000 });
   summary.images = await page.$$eval("#results img", (imgs) =>
     imgs.filter((img) => img.complete && img.naturalWidth > 0).map((img) => img.alt));
   summary.plots = await page.$$eval("#plots svg polyline", (lines) => lines.length);

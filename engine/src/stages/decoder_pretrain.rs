@@ -17,7 +17,8 @@
 //!
 //! Output folder: `decoder.safetensors`, `adain_decoder.safetensors`, `vae.safetensors`,
 //! `styles.json` (per style: name, μ, σ, plus how the style features were computed),
-//! `sheets/style-<k>.png` (labelled rows of content | style | output), `metrics.json` (written last),
+//! `sheets/style-<k>.png` (labelled rows of content | style | output), `curves.png` (the loss
+//! terms over the steps), `metrics.json` (written last),
 //! and `ckpt/` (decoder + Adam moments + RNG, and the baseline's weights once L_co is on).
 
 use std::collections::HashMap;
@@ -28,6 +29,7 @@ use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::{write_json_atomic, CheckpointDir};
+use crate::curves::{self, Series};
 use crate::optim::{Adam, AdamConfig};
 use crate::preset::Preset;
 use crate::rng::Rng;
@@ -592,6 +594,18 @@ pub fn run(
         style_loss: st / n,
         vae_reconstruction: vae_losses.reconstruction,
     };
+    let log = &report.loss_log;
+    let term = |title, f: fn(&LossRecord) -> f32| {
+        Series::new(title, log.iter().map(|r| (r.step as f64, f64::from(f(r)))))
+    };
+    curves::save(
+        out,
+        &[
+            term("content loss", |r| r.content),
+            term("style loss", |r| r.style),
+            term("consistency loss", |r| r.consistency),
+        ],
+    )?;
     write_json_atomic(&out.join("metrics.json"), &report)?;
     Ok(Outcome::Done(report))
 }

@@ -14,8 +14,8 @@
 //! While the decoder is frozen its outputs are cached per (view, style).
 //!
 //! Output folder: `style_module.safetensors`, `latents.safetensors` (codes, μ, σ) with
-//! `latents.json` (style names), `decoder.safetensors` (fine-tuned), `metrics.json` (written
-//! last), and `ckpt/` (style module, latents, decoder, both optimisers' moments, RNG).
+//! `latents.json` (style names), `decoder.safetensors` (fine-tuned), `curves.png` (the loss
+//! terms over the steps), `metrics.json` (written last), and `ckpt/` (style module, latents, decoder, both optimisers' moments, RNG).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -25,6 +25,7 @@ use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::{write_json_atomic, CheckpointDir};
+use crate::curves::{self, Series};
 use crate::field::saved;
 use crate::optim::{Adam, AdamConfig};
 use crate::preset::Preset;
@@ -551,6 +552,20 @@ pub fn run(
         latent_deviation: latents.mean_deviation()?,
         loss_log,
     };
+    let log = &report.loss_log;
+    let term = |title, f: fn(&MutualRecord) -> f32| {
+        Series::new(title, log.iter().map(|r| (r.step as f64, f64::from(f(r)))))
+    };
+    curves::save(
+        out,
+        &[
+            term("mimic loss", |r| r.mimic),
+            term("latent NLL", |r| r.latent_nll),
+            term("NeRF style loss", |r| r.nerf_style),
+            term("decoder content loss", |r| r.content),
+            term("decoder style loss", |r| r.style),
+        ],
+    )?;
     write_json_atomic(&out.join("metrics.json"), &report)?;
     Ok(Outcome::Done(report))
 }

@@ -3,7 +3,8 @@
 //! write the field artifact.
 //!
 //! Output folder: `field.safetensors` + `field.json` (see [`crate::field::saved`]),
-//! `metrics.json`, `test/<name>.png` (renders of the test views), `ckpt/` (checkpoints).
+//! `metrics.json`, `curves.png` (training loss and test PSNR, see [`crate::curves`]),
+//! `test/<name>.png` (renders of the test views), `ckpt/` (checkpoints).
 
 use std::path::Path;
 use std::time::Instant;
@@ -12,6 +13,7 @@ use candle_core::Device;
 use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::{write_atomic, CheckpointDir};
+use crate::curves::{self, Series};
 use crate::field::hash_grid::HashGridConfig;
 use crate::field::radiance::{FieldConfig, RadianceField};
 use crate::field::saved::{self, FieldMeta};
@@ -431,6 +433,18 @@ pub fn run(
         psnr_curve,
     };
     saved::save(out, &field, &meta)?;
+    let loss = report
+        .loss_log
+        .iter()
+        .map(|&(s, l)| (s as f64, f64::from(l)));
+    let psnr = report.psnr_curve.iter().map(|&(s, _, p)| (s as f64, p));
+    curves::save(
+        out,
+        &[
+            Series::new("training loss", loss),
+            Series::new("test PSNR (dB)", psnr),
+        ],
+    )?;
     let json = serde_json::to_vec_pretty(&report)
         .map_err(|e| EngineError::artifact(out, e.to_string()))?;
     write_atomic(&out.join("metrics.json"), &json)?;

@@ -220,7 +220,7 @@ function plots(events) {
 
 async function results(job, urls) {
   const artifacts = (await rpc("ListArtifacts", { job_id: job.id })).artifacts || [];
-  const shown = artifacts.filter((a) => /\/(sheet\.png|animation\.gif|animation\.mp4)$/.test(a.key));
+  const shown = artifacts.filter((a) => /\/(sheet\.png|animation\.gif|animation\.mp4|curves\.png)$/.test(a.key));
   const figures = [];
   for (const artifact of shown) {
     if (!urls.has(artifact.key)) {
@@ -230,7 +230,7 @@ async function results(job, urls) {
     const label = artifact.key.replace(`jobs/${job.id}/`, "");
     const media = artifact.key.endsWith(".mp4")
       ? el("video", { src: url, controls: true, loop: true, muted: true })
-      : el("img", { src: url, alt: label });
+      : el("img", { src: url, alt: label, class: label.endsWith("curves.png") ? "chart" : "render" });
     figures.push(el("figure", {}, media, el("figcaption", { class: "muted" }, label)));
   }
   return el("div", { class: "results", id: "results" },
