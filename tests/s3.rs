@@ -9,9 +9,14 @@
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
+mod support;
+
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+use stylenerf_engine::image_io::save_rgb_png;
+use stylenerf_engine::style2d::painted;
+use support::{log_tail, run, Service, CLIENT_TOKEN};
 
 /// `moto_server`, where it is installed.
 fn moto_server() -> Option<PathBuf> {
@@ -36,17 +41,29 @@ impl Drop for Moto {
     }
 }
 
-/// One HTTP/1.1 request without a body; returns the status line.
-fn request(addr: &str, method: &str, path: &str) -> std::io::Result<String> {
+/// One HTTP/1.1 request without a body; returns the status line and the body.
+fn exchange(addr: &str, method: &str, path: &str) -> std::io::Result<(String, Vec<u8>)> {
     let mut stream = TcpStream::connect(addr)?;
     stream.set_read_timeout(Some(Duration::from_secs(10)))?;
     write!(
         stream,
         "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
     )?;
-    let mut reply = String::new();
-    stream.read_to_string(&mut reply)?;
-    Ok(reply.lines().next().unwrap_or_default().to_string())
+    let mut reply = Vec::new();
+    stream.read_to_end(&mut reply)?;
+    let head_end = reply
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .map_or(reply.len(), |i| i + 4);
+    let head = String::from_utf8_lossy(&reply[..head_end]);
+    let status = head.lines().next().unwrap_or_default().to_string();
+    // Bodies here are small and not chunked (moto answers with Content-Length).
+    Ok((status, reply[head_end..].to_vec()))
+}
+
+/// The status line of a request.
+fn request(addr: &str, method: &str, path: &str) -> std::io::Result<String> {
+    exchange(addr, method, path).map(|(status, _)| status)
 }
 
 fn start_moto(program: &PathBuf) -> Moto {
@@ -129,4 +146,96 @@ fn a_job_runs_and_resumes_with_every_artifact_in_s3() {
         report["resumed_from_store"].as_u64().unwrap() > 0,
         "{report}"
     );
+}
+
+#[test]
+fn artifact_urls_are_presigned_by_the_bucket() {
+    let Some(program) = moto_server() else {
+        assert!(
+            std::env::var_os("STYLENERF_REQUIRE_TEST_TOOLS").is_none(),
+            "STYLENERF_REQUIRE_TEST_TOOLS is set but moto_server was not found"
+        );
+        eprintln!("skipped: moto_server not found (pip install 'moto[server]'; .ci/run does)");
+        return;
+    };
+    let moto = start_moto(&program);
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = d.join("scene");
+    run(&[
+        "scene",
+        "generate",
+        "--out",
+        scene.to_str().unwrap(),
+        "--size",
+        "16",
+        "--views",
+        "4",
+    ]);
+    let style = d.join("waves.png");
+    save_rgb_png(
+        &style,
+        32,
+        32,
+        painted::paint("waves", 32).unwrap().as_raw(),
+    )
+    .unwrap();
+    let env = [
+        ("AWS_ENDPOINT", moto.endpoint.as_str()),
+        ("AWS_ALLOW_HTTP", "true"),
+        ("AWS_ACCESS_KEY_ID", "testing"),
+        ("AWS_SECRET_ACCESS_KEY", "testing"),
+        ("AWS_REGION", "us-east-1"),
+    ];
+    let service = Service::start_with(d, Some("s3://stylenerf-ci/presigned"), &env, &[]);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let (job, url) = runtime.block_on(async {
+        // The coordinator process needs a moment to answer.
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let client = loop {
+            match stylenerf_client::Client::connect(&service.endpoint, Some(CLIENT_TOKEN)).await {
+                Ok(client) if client.list(&Default::default()).await.is_ok() => break client,
+                _ if Instant::now() < deadline => {
+                    tokio::time::sleep(Duration::from_millis(200)).await
+                }
+                _ => panic!("no coordinator: {}", log_tail(d, "coordinator.log")),
+            }
+        };
+        let mut spec = stylenerf_client::JobSpec::new(
+            stylenerf_client::Input::path(&scene),
+            [stylenerf_client::Input::path(&style)],
+        );
+        spec.preset = Some("tiny".into());
+        let job = client.submit(&spec).await.unwrap().job;
+        let url = client
+            .artifact_url(&job.id, &job.style_keys[0], 120)
+            .await
+            .unwrap();
+        (job, url)
+    });
+    drop(service);
+    // The bucket signed it: the URL points at the S3 API, not the coordinator.
+    let address = moto.endpoint.trim_start_matches("http://");
+    let path = url
+        .url
+        .strip_prefix(&moto.endpoint)
+        .unwrap_or_else(|| panic!("{} is not a URL of {}", url.url, moto.endpoint));
+    assert!(
+        path.contains("X-Amz-Signature=") && path.contains("X-Amz-Credential=testing"),
+        "{}",
+        url.url
+    );
+    assert!(path.contains(&job.id), "{}", url.url);
+    let (status, body) = exchange(address, "GET", path).unwrap();
+    assert!(status.contains(" 200 "), "{status}");
+    assert_eq!(
+        body,
+        std::fs::read(&style).unwrap(),
+        "the stored copy of the style"
+    );
+    assert_eq!(url.size, body.len() as u64);
+    // (moto does not check signatures, so a tampered URL would open here too: the signing is
+    // object_store's SigV4; what this test shows is that the coordinator hands out the
+    // bucket's own URL, with the asked lifetime, and that it serves the object.)
+    assert!(path.contains("X-Amz-Expires=120"), "{}", url.url);
 }

@@ -422,8 +422,8 @@ impl Client {
     }
 
     /// A signed URL any HTTP client can GET the object from without a token, valid for
-    /// `ttl_seconds` (0: the coordinator's default, an hour); needs a coordinator started with
-    /// `--http-listen`.
+    /// `ttl_seconds` (0: the coordinator's default, an hour): presigned by the object store
+    /// where it signs (S3, GCS, Azure), else by a coordinator started with `--http-listen`.
     pub async fn artifact_url(
         &self,
         job_id: &str,

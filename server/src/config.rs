@@ -59,6 +59,8 @@ pub struct CoordinatorConfig {
     pub url_signing_key: Option<Vec<u8>>,
     /// Let webhooks reach loopback and private addresses (development, in-cluster receivers).
     pub webhook_allow_private: bool,
+    /// Who signs the URLs of `GetArtifactUrl`.
+    pub artifact_urls: ArtifactUrls,
     /// Finished jobs and uploads older than this are deleted (objects and rows); `None` keeps
     /// everything.
     pub retention: Option<Duration>,
@@ -146,6 +148,20 @@ impl Default for Limits {
     }
 }
 
+/// Who signs artifact URLs (`--artifact-urls`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ArtifactUrls {
+    /// The object store where it signs URLs (S3, GCS, Azure), else the coordinator.
+    #[default]
+    Auto,
+    /// Always the object store: clients download from it directly (it must sign URLs).
+    Store,
+    /// Always the coordinator's HTTP endpoint (`--http-listen`), e.g. when clients cannot
+    /// reach the store.
+    Coordinator,
+}
+
 /// One owner's quota; 0 = no limit.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -223,6 +239,7 @@ impl CoordinatorConfig {
             retention_sweep_interval: Duration::from_secs(3600),
             upload_session_ttl: Duration::from_secs(24 * 3600),
             quotas: Quotas::default(),
+            artifact_urls: ArtifactUrls::Auto,
             backups_kept: 48,
             restore_from_backup: false,
             presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
@@ -316,6 +333,11 @@ pub struct CoordinatorArgs {
     /// a webhook is a request the coordinator makes for a client).
     #[arg(long, env = "STYLENERF_WEBHOOK_ALLOW_PRIVATE")]
     pub webhook_allow_private: bool,
+    /// Who signs artifact URLs (`GetArtifactUrl`): `auto` (the object store where it can —
+    /// S3, GCS, Azure — else this coordinator's HTTP endpoint), `store` or `coordinator`
+    /// [default: auto].
+    #[arg(long, env = "STYLENERF_ARTIFACT_URLS", value_enum)]
+    pub artifact_urls: Option<ArtifactUrls>,
     /// Delete finished jobs (their objects and records) and uploads older than this many days,
     /// checked hourly; 0 = keep everything [default: 0].
     #[arg(long, env = "STYLENERF_RETENTION_DAYS")]
@@ -373,6 +395,7 @@ struct FileConfig {
     restore_from_backup: Option<bool>,
     retention_days: Option<f64>,
     upload_session_hours: Option<f64>,
+    artifact_urls: Option<ArtifactUrls>,
     max_running_tasks_per_owner: Option<u32>,
     max_stored_gib_per_owner: Option<f64>,
     /// Owners' own quotas, by principal name.
@@ -532,6 +555,10 @@ impl CoordinatorArgs {
         )?;
         config.webhook_allow_private =
             self.webhook_allow_private || file.webhook_allow_private.unwrap_or(false);
+        config.artifact_urls = self
+            .artifact_urls
+            .or(file.artifact_urls)
+            .unwrap_or_default();
         config.http_listen = self.http_listen.or(file.http_listen);
         config.public_url = self.public_url.or(file.public_url);
         if let Some(path) = self.url_signing_key_file.or(file.url_signing_key_file) {

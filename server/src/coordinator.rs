@@ -60,6 +60,12 @@ impl Coordinator {
         }
         let storage = Storage::open(&config.storage_url)?;
         storage.check_access().await?;
+        anyhow::ensure!(
+            config.artifact_urls != crate::config::ArtifactUrls::Store || storage.can_sign(),
+            "--artifact-urls store: the store {} signs no URLs (a local folder); use auto or \
+             coordinator with --http-listen",
+            config.storage_url
+        );
         if config.restore_from_backup {
             match crate::backup::restore(&storage, &config.database).await? {
                 Some(key) => tracing::warn!(%key, database = %config.database.display(),

@@ -34,7 +34,8 @@ mod writer;
 pub use api::job_api::CAMERA_PATH_KINDS;
 pub use auth::{AuthConfig, Role, TokenEntry};
 pub use config::{
-    CoordinatorArgs, CoordinatorConfig, Limits, Quota, Quotas, SettingsCheck, TlsConfig,
+    ArtifactUrls, CoordinatorArgs, CoordinatorConfig, Limits, Quota, Quotas, SettingsCheck,
+    TlsConfig,
 };
 pub use coordinator::{Coordinator, CoordinatorHandle};
 pub use stylenerf_proto as proto;

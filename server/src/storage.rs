@@ -18,14 +18,58 @@ use tonic::Status;
 /// Content of streamed reads is sent in chunks of this size.
 pub const CHUNK_BYTES: usize = 1 << 20;
 
+/// A store that signs URLs (only the cloud stores do).
+#[cfg(feature = "cloud")]
+type StoreSigner = Arc<dyn object_store::signer::Signer>;
+#[cfg(not(feature = "cloud"))]
+type StoreSigner = std::convert::Infallible;
+
 /// The coordinator's object store.
 #[derive(Clone, Debug)]
 pub struct Storage {
     store: Arc<dyn ObjectStore>,
+    /// The same store as a URL signer, when it can sign (the cloud stores).
+    signer: Option<StoreSigner>,
     /// The store's own description (for logs).
     backend: String,
     /// The normalised URL workers with direct access can open.
     url: String,
+}
+
+/// A cloud store under `prefix`, configured from `options` (lower-case `aws_*`, `google_*`,
+/// `azure_*` keys; others ignored) as object_store's `parse_url_opts` does, kept as both a
+/// store and a URL signer.
+#[cfg(feature = "cloud")]
+fn cloud_store(
+    url: &url::Url,
+    scheme: ObjectStoreScheme,
+    prefix: ObjectPath,
+    options: &[(String, String)],
+) -> object_store::Result<(Arc<dyn ObjectStore>, StoreSigner)> {
+    use object_store::prefix::PrefixStore;
+    macro_rules! build {
+        ($builder:ty) => {{
+            let builder = options.iter().fold(
+                <$builder>::new().with_url(url.to_string()),
+                |builder, (key, value)| match key.parse() {
+                    Ok(key) => builder.with_config(key, value.clone()),
+                    Err(_) => builder,
+                },
+            );
+            let store = Arc::new(PrefixStore::new(builder.build()?, prefix));
+            Ok((store.clone(), store))
+        }};
+    }
+    match scheme {
+        ObjectStoreScheme::AmazonS3 => build!(object_store::aws::AmazonS3Builder),
+        ObjectStoreScheme::GoogleCloudStorage => {
+            build!(object_store::gcp::GoogleCloudStorageBuilder)
+        }
+        ObjectStoreScheme::MicrosoftAzure => build!(object_store::azure::MicrosoftAzureBuilder),
+        other => Err(object_store::Error::NotSupported {
+            source: format!("{other:?} is not a cloud store").into(),
+        }),
+    }
 }
 
 impl Storage {
@@ -57,12 +101,13 @@ impl Storage {
             return Ok(Storage {
                 backend: store.to_string(),
                 store: Arc::new(store),
+                signer: None,
                 url: format!("file://{}", dir.display()),
             });
         }
         let url = url::Url::parse(location)
             .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
-        let (scheme, _) = ObjectStoreScheme::parse(&url)
+        let (scheme, prefix) = ObjectStoreScheme::parse(&url)
             .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
         let cloud = matches!(
             scheme,
@@ -74,31 +119,65 @@ impl Storage {
             cloud,
             "storage URL {location:?}: expected a directory, file://, s3://, gs:// or az:// URL"
         );
-        anyhow::ensure!(
-            cfg!(feature = "cloud"),
-            "storage URL {location:?}: cloud stores need a coordinator built with the `cloud` \
-             feature of stylenerf-server"
-        );
+        #[cfg(not(feature = "cloud"))]
+        {
+            let _ = (env, prefix);
+            anyhow::bail!(
+                "storage URL {location:?}: cloud stores need a coordinator built with the \
+                 `cloud` feature of stylenerf-server"
+            )
+        }
         #[cfg(feature = "cloud")]
         {
             // HTTPS to the cloud APIs uses rustls with ring, as the gRPC server does (no
             // aws-lc C build); an embedding program may have installed a provider already.
             let _ = rustls::crypto::ring::default_provider().install_default();
+            let prefix = ObjectPath::parse(prefix)
+                .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
+            let options: Vec<(String, String)> = env
+                .into_iter()
+                .map(|(k, v)| (k.to_ascii_lowercase(), v))
+                .collect();
+            let (store, signer) = cloud_store(&url, scheme, prefix, &options)
+                .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
+            Ok(Storage {
+                backend: store.to_string(),
+                store,
+                signer: Some(signer),
+                url: location.trim_end_matches('/').to_string(),
+            })
         }
-        let options = env.into_iter().map(|(k, v)| (k.to_ascii_lowercase(), v));
-        let (store, prefix) = object_store::parse_url_opts(&url, options)
-            .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
-        let backend = store.to_string();
-        let store: Arc<dyn ObjectStore> = if prefix.as_ref().is_empty() {
-            Arc::from(store)
-        } else {
-            Arc::new(object_store::prefix::PrefixStore::new(store, prefix))
-        };
-        Ok(Storage {
-            store,
-            backend,
-            url: location.trim_end_matches('/').to_string(),
-        })
+    }
+
+    /// A presigned GET URL of `key` valid for `expires_in`, when the store signs URLs (S3,
+    /// GCS, Azure); `None` for a local folder.
+    pub async fn presigned_get(
+        &self,
+        key: &str,
+        expires_in: std::time::Duration,
+    ) -> Option<anyhow::Result<String>> {
+        let signer = self.signer.as_ref()?;
+        #[cfg(feature = "cloud")]
+        {
+            let url = signer
+                .signed_url(
+                    object_store::signer::Method::GET,
+                    &ObjectPath::from(key),
+                    expires_in,
+                )
+                .await;
+            Some(url.map(|u| u.to_string()).map_err(anyhow::Error::from))
+        }
+        #[cfg(not(feature = "cloud"))]
+        {
+            let _ = (key, expires_in);
+            match *signer {}
+        }
+    }
+
+    /// Whether the store signs URLs itself.
+    pub fn can_sign(&self) -> bool {
+        self.signer.is_some()
     }
 
     /// Writes, reads back and deletes a small object, so that a missing bucket, wrong

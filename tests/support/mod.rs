@@ -2,6 +2,9 @@
 //! as processes of the built binary on loopback (real SQLite file, local store, token auth, the
 //! HTTP listener), killed when dropped, and `stylenerf` commands run to completion.
 
+// Compiled into each test binary that declares `mod support;`; each uses a part of it.
+#![allow(dead_code)]
+
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
@@ -35,10 +38,11 @@ fn free_port() -> u16 {
         .port()
 }
 
-fn spawn(dir: &Path, log: &str, args: &[&str]) -> Child {
+fn spawn(dir: &Path, log: &str, env: &[(&str, &str)], args: &[&str]) -> Child {
     Command::new(env!("CARGO_BIN_EXE_stylenerf"))
         .args(["--log", "info", "--log-format", "json"])
         .args(args)
+        .envs(env.iter().copied())
         .env_remove("STYLENERF_LOG")
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(dir.join(log)).unwrap())
@@ -50,6 +54,17 @@ impl Service {
     /// Starts both under `dir` (database, store, scratch and the logs `coordinator.log`,
     /// `worker.log`), the coordinator with `extra` flags too.
     pub fn start(dir: &Path, extra: &[&str]) -> Service {
+        Service::start_with(dir, None, &[], extra)
+    }
+
+    /// [`Service::start`] with another artifact store (a URL) and more environment for both
+    /// processes (the store's credentials).
+    pub fn start_with(
+        dir: &Path,
+        storage: Option<&str>,
+        env: &[(&str, &str)],
+        extra: &[&str],
+    ) -> Service {
         let (grpc, http) = (free_port(), free_port());
         let endpoint = format!("http://127.0.0.1:{grpc}");
         let tokens = format!("client:web:{CLIENT_TOKEN},worker:pool:{WORKER_TOKEN}");
@@ -67,13 +82,15 @@ impl Service {
             "--tokens",
             &tokens,
         ];
-        let (database, store, scratch) = (path("coordinator.db"), path("store"), path("scratch"));
+        let (database, scratch) = (path("coordinator.db"), path("scratch"));
+        let store = storage.map_or_else(|| path("store"), str::to_string);
         coordinator.extend(["--database", &database, "--storage", &store]);
         coordinator.extend(extra);
-        let mut processes = vec![spawn(dir, "coordinator.log", &coordinator)];
+        let mut processes = vec![spawn(dir, "coordinator.log", env, &coordinator)];
         processes.push(spawn(
             dir,
             "worker.log",
+            env,
             &[
                 "worker",
                 "--endpoint",

@@ -2,6 +2,7 @@
 //! watching with replay, cancellation, artifact listing and download, and new renders.
 
 use crate::auth::{require, Principal, Role, CLIENT_ROLES};
+use crate::config::ArtifactUrls;
 use crate::errors::{internal, invalid, invalid_all, Violation};
 use crate::events::{read_after, Scope};
 use crate::inputs::{receive_upload, resolve_input, InputKind};
@@ -847,25 +848,40 @@ impl JobService for JobApi {
                 format!("{} is more than 7 days ({MAX_TTL})", req.ttl_seconds),
             ));
         }
-        let Some(downloads) = &self.shared.downloads else {
-            return Err(Status::failed_precondition(
-                "this coordinator serves no HTTP downloads (start it with --http-listen); \
-                 use DownloadArtifact",
-            ));
+        let storage = &self.shared.storage;
+        let by_store = match self.shared.config.artifact_urls {
+            ArtifactUrls::Auto => storage.can_sign(),
+            ArtifactUrls::Store => true,
+            ArtifactUrls::Coordinator => false,
         };
-        let size = self.shared.storage.size(&req.key).await?;
+        let size = storage.size(&req.key).await?;
         let ttl = if req.ttl_seconds == 0 {
             DEFAULT_TTL
         } else {
             req.ttl_seconds
         };
         let expires_at_ms = crate::model::now_ms() + i64::from(ttl) * 1000;
-        Ok(Response::new(pb::ArtifactUrl {
-            url: format!(
+        let url = if by_store {
+            storage
+                .presigned_get(&req.key, std::time::Duration::from_secs(ttl.into()))
+                .await
+                .ok_or_else(|| internal("--artifact-urls store with a store that cannot sign"))?
+                .map_err(internal)?
+        } else {
+            let Some(downloads) = &self.shared.downloads else {
+                return Err(Status::failed_precondition(
+                    "this coordinator serves no HTTP downloads (start it with --http-listen) \
+                     and its store signs no URLs; use DownloadArtifact",
+                ));
+            };
+            format!(
                 "{}{}",
                 downloads.public_url,
                 downloads.signer.path(&req.key, expires_at_ms)
-            ),
+            )
+        };
+        Ok(Response::new(pb::ArtifactUrl {
+            url,
             expires_at_ms,
             size,
         }))
