@@ -255,6 +255,17 @@ fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
         for f in ["animation.gif", "sheet.png", "frames/frame_0000.png"] {
             assert!(dir.join(f).exists(), "{}/{f} missing", spec.folder);
         }
+        // The report says which animations exist, and why an MP4 is missing (no ffmpeg).
+        assert_eq!(spec.animations[0], "animation.gif");
+        let mp4 = dir.join("animation.mp4").exists();
+        assert_eq!(spec.animations.iter().any(|a| a == "animation.mp4"), mp4);
+        assert_eq!(
+            spec.animation_note.is_none(),
+            mp4,
+            "{:?}",
+            spec.animation_note
+        );
+        assert!(!dir.join(".animation.tmp.mp4").exists());
         assert_eq!(spec.methods.len(), 3);
         for m in &spec.methods {
             assert!(m.short_range.pairs > 0, "{}: no valid pairs", m.method);
@@ -265,6 +276,7 @@ fn stylized_render_writes_frames_sheet_and_evaluation_for_styles_and_blends() {
     assert!(photoreal.short_range.pairs > 0 && photoreal.long_range.rmse.is_finite());
     let eval_md = std::fs::read_to_string(out.join("eval.md")).unwrap();
     assert!(eval_md.contains("NeRF, unstylized (reference)"));
+    assert!(eval_md.contains("animation.gif"), "{eval_md}");
     assert!(out.join("metrics.json").exists());
     // The blend is neither of its styles.
     let read = |s: &str| {

@@ -5,7 +5,8 @@
 //! methods blend the AdaIN targets' statistics the same way). For every style spec the stage
 //! writes, under `<spec>/`: `frames/frame_NNNN.png`, `animation.gif` (and `animation.mp4` when
 //! `ffmpeg` is on PATH), `sheet.png` (labelled rows of style | photoreal render | NeRF→AdaIN
-//! | stylized NeRF for a few views). With evaluation on (the default), it also renders the
+//! | stylized NeRF for a few views); its entry in `metrics.json` lists the animations written
+//! and says why there is no MP4 when there is none (also at the end of `eval.md`). With evaluation on (the default), it also renders the
 //! path with (a) the plain-AdaIN decoder of `decoder_pretrain` (trained without L_co) frame by
 //! frame (the paper's NeRF→AdaIN baseline) and (b) the mutually fine-tuned decoder, and
 //! reports for (a), (b) and (c) the stylized NeRF the warped consistency errors, the
@@ -145,6 +146,12 @@ pub struct SpecReport {
     pub methods: Vec<MethodScores>,
     /// The unstylized frames' [`OutsideScores`]: the "did nothing" floor (with evaluation).
     pub unstylized: Option<OutsideScores>,
+    /// The animations written: `animation.gif`, and `animation.mp4` when ffmpeg made one.
+    #[serde(default)]
+    pub animations: Vec<String>,
+    /// Why there is no `animation.mp4`, when there is none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub animation_note: Option<String>,
 }
 
 /// Consistency of the unstylized NeRF rendering along the same path: the floor that
@@ -476,7 +483,7 @@ pub fn run(
                 ..Default::default()
             });
         }
-        write_animation(&dir, &stylized, cfg.frame_ms)?;
+        let (animations, animation_note) = write_animation(&dir, &stylized, cfg.frame_ms)?;
         let decode = |decoder: &Decoder| -> Result<Vec<Tensor>> {
             features
                 .iter()
@@ -537,6 +544,8 @@ pub fn run(
             frames: stylized.len(),
             methods,
             unstylized,
+            animations,
+            animation_note,
         });
     }
     let photoreal = match &warps {
@@ -602,6 +611,13 @@ pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig)
     s += "\nColour SWD and texture distance are measured outside the encoder, against the spec's \
           main style image (lower: closer to the painting); the unstylized row is the floor a \
           method that transfers no style would score.\n";
+    for spec in &report.specs {
+        s += &format!("\n{}: {}", spec.spec, spec.animations.join(", "));
+        if let Some(note) = &spec.animation_note {
+            s += &format!(" ({note})");
+        }
+    }
+    s.push('\n');
     s
 }
 
@@ -610,8 +626,13 @@ fn save_frame(path: &Path, frame: &Tensor) -> Result<()> {
     image_io::save_rgb_png(path, w, h, &rgb)
 }
 
-/// `animation.gif`, plus `animation.mp4` when `ffmpeg` is available.
-fn write_animation(dir: &Path, frames: &[Tensor], frame_ms: u32) -> Result<()> {
+/// `animation.gif`, plus `animation.mp4` when `ffmpeg` is available. Returns the files
+/// written, and why there is no MP4 when there is none.
+fn write_animation(
+    dir: &Path,
+    frames: &[Tensor],
+    frame_ms: u32,
+) -> Result<(Vec<String>, Option<String>)> {
     let path = dir.join("animation.gif");
     let tmp = dir.join(".animation.gif.tmp");
     {
@@ -633,14 +654,25 @@ fn write_animation(dir: &Path, frames: &[Tensor], frame_ms: u32) -> Result<()> {
         }
     }
     std::fs::rename(&tmp, &path).map_err(|e| EngineError::io(&path, e))?;
-    encode_mp4(dir, frame_ms);
-    Ok(())
+    let mut written = vec!["animation.gif".to_string()];
+    match encode_mp4(dir, frame_ms) {
+        Ok(()) => {
+            written.push("animation.mp4".into());
+            Ok((written, None))
+        }
+        Err(why) => {
+            tracing::warn!("{why}; animation.gif is the only animation");
+            Ok((written, Some(why)))
+        }
+    }
 }
 
-/// Best effort: `ffmpeg` turns the PNG frames into an H.264 MP4; skipped when absent.
-fn encode_mp4(dir: &Path, frame_ms: u32) {
+/// Best effort: `ffmpeg` turns the PNG frames into an H.264 MP4 (written under a temporary
+/// name, then renamed); the reason when it cannot.
+fn encode_mp4(dir: &Path, frame_ms: u32) -> std::result::Result<(), String> {
     let fps = (1000.0 / frame_ms.max(1) as f64).to_string();
     let mp4: PathBuf = dir.join("animation.mp4");
+    let tmp: PathBuf = dir.join(".animation.tmp.mp4");
     let status = std::process::Command::new("ffmpeg")
         .args(["-loglevel", "error", "-y", "-framerate", &fps, "-i"])
         .arg(dir.join("frames").join("frame_%04d.png"))
@@ -650,16 +682,24 @@ fn encode_mp4(dir: &Path, frame_ms: u32) {
             "-vf",
             "scale=trunc(iw/2)*2:trunc(ih/2)*2",
         ])
-        .arg(&mp4)
+        .arg(&tmp)
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .status();
     match status {
-        Ok(s) if s.success() => tracing::info!(path = %mp4.display(), "animation.mp4 written"),
-        Ok(s) => tracing::warn!(%s, "ffmpeg failed: animation.gif is the only animation"),
-        Err(_) => tracing::warn!(
-            "animation.mp4 not written: ffmpeg is not on PATH (the container images include \
-             it); animation.gif is the only animation"
+        Ok(s) if s.success() => {
+            std::fs::rename(&tmp, &mp4)
+                .map_err(|e| format!("animation.mp4 not written: renaming it failed: {e}"))?;
+            tracing::info!(path = %mp4.display(), "animation.mp4 written");
+            Ok(())
+        }
+        Ok(s) => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(format!("animation.mp4 not written: ffmpeg failed ({s})"))
+        }
+        Err(_) => Err(
+            "animation.mp4 not written: ffmpeg is not on PATH (the container images include it)"
+                .into(),
         ),
     }
 }

@@ -13,7 +13,8 @@
 //!   optionally `x-content-sha256`, checked when given): the `UploadReceipt`.
 //!
 //! Every call needs `authorization: Bearer <token>` (no cookies: nothing a third-party page
-//! could make a browser send). The page itself is static and loads no other origin.
+//! could make a browser send). The page itself is static; it runs and fetches from this origin
+//! only (its images may come from the object store's presigned URLs).
 
 mod rpc;
 mod upload;
@@ -94,13 +95,14 @@ pub fn router(shared: Arc<Shared>) -> axum::Router {
         )
 }
 
-/// A static part of the page, with a policy that lets it load only from this origin.
+/// A static part of the page, with a policy that lets it run and fetch only from this origin;
+/// images and videos may also come from the object store (presigned artifact URLs).
 fn page(text: &'static str, media_type: &str) -> Response {
     Response::builder()
         .header(header::CONTENT_TYPE, format!("{media_type}; charset=utf-8"))
         .header(
             header::CONTENT_SECURITY_POLICY,
-            "default-src 'self'; img-src 'self' data:; media-src 'self'; frame-ancestors 'none'",
+            "default-src 'self'; img-src * data:; media-src *; frame-ancestors 'none'",
         )
         .header(header::X_CONTENT_TYPE_OPTIONS, "nosniff")
         .header(header::CACHE_CONTROL, "no-cache")
