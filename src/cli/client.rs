@@ -3,7 +3,7 @@
 //! `--token` (or `STYLENERF_ENDPOINT` / `STYLENERF_TOKEN`) and `--output text|json`: text for
 //! people, one JSON document (or one per line for event streams) for scripts.
 
-use super::client_view::WatchView;
+use super::client_view::{StageTimes, WatchView};
 use super::terminal_safe::TerminalSafe;
 use anyhow::Context;
 use clap::{Args, Subcommand, ValueEnum};
@@ -568,7 +568,12 @@ pub(crate) async fn follow(
 ) -> anyhow::Result<()> {
     let job = client.get(job_id).await?;
     let mut events = client.watch(job_id, WatchOptions::default()).await?;
-    let mut view = (!json).then(|| WatchView::new(&job));
+    let mut view = if json {
+        None
+    } else {
+        let times = StageTimes::of_last_similar(client, &job).await;
+        Some(WatchView::new(&job, times))
+    };
     while let Some(event) = events.next().await {
         let event = event?;
         match &mut view {
