@@ -1,9 +1,9 @@
 //! The coordinator's page in a real browser: headless Chromium, driven by Playwright
 //! (`tests/web/drive.mjs`), signs in, submits a tiny job from the form with a generated scene
 //! archive and two paintings, watches it finish on the job page, sees its animations and
-//! training curves, and requests a style-blend render — against a coordinator and a worker
-//! running as processes of the built binary. Its screenshots are kept in
-//! `target/web-screenshots/` for a person to open, and checked here for content.
+//! training curves, and requests a style-blend render whose animation then appears — against
+//! a coordinator and a worker running as processes of the built binary. Its screenshots are
+//! kept in `target/web-screenshots/` for a person to open, and checked here for content.
 //!
 //! Needs Node.js, Chromium (`STYLENERF_CHROMIUM`, default `/usr/bin/chromium`) and the npm
 //! package playwright-core (`STYLENERF_PLAYWRIGHT`: the `node_modules` folder holding it,
@@ -140,6 +140,13 @@ fn a_person_submits_watches_and_blends_a_job_in_chromium() {
     assert!(animations >= 2 && sheets >= 2, "{summary}");
     assert!(summary["plots"].as_u64().unwrap() >= 1, "{summary}");
     assert_eq!(summary["blendRequested"], true);
+    let after: Vec<String> =
+        serde_json::from_value(summary["animationsAfterBlend"].clone()).unwrap();
+    assert_eq!(
+        after.len(),
+        3,
+        "the blend's animation appeared on the page: {summary}"
+    );
     let job = job.expect("the page's job is listed");
     assert_eq!(summary["jobId"], job.id.as_str());
     assert_eq!(job.name, "from the browser");

@@ -76,6 +76,11 @@ try {
   await page.click("#render-blend");
   await page.waitForSelector("text=/render task \\d+ queued/");
   summary.blendRequested = true;
+  // The page follows the job again and shows the blend's animation when it is done.
+  await page.waitForFunction(() => document.querySelectorAll("#results img[alt$='animation.gif']").length >= 3,
+    null, { timeout });
+  await page.waitForSelector("#job-title .state.succeeded", { timeout });
+  summary.animationsAfterBlend = await page.$$eval("#results img[alt$='animation.gif']", (imgs) => imgs.map((img) => img.alt));
   await page.screenshot({ path: path.join(shots, "4-blend-requested.png"), fullPage: true });
   summary.pageErrors = errors;
 } finally {

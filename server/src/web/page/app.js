@@ -237,7 +237,9 @@ async function results(job, urls) {
     figures.length ? figures : el("p", { class: "muted" }, "Contact sheets and animations appear here when render_stylized has run."));
 }
 
-function blendForm(job) {
+/// The blend slider; `queued` is called once a render is queued (the page then follows the job
+/// again until the render's animation is in).
+function blendForm(job, queued) {
   const styles = job.style_keys || [];
   const mutual = (job.tasks || []).find((t) => stageName(t.stage) === "mutual_learning");
   if (styles.length < 2 || !mutual || taskState(mutual) !== "succeeded") return null;
@@ -256,6 +258,7 @@ function blendForm(job) {
           style_blend: [{ style_index: 0, weight: 1 - t }, { style_index: 1, weight: t }],
         });
         status.textContent = `render task ${task.id} queued; its animation appears below when it is done`;
+        queued();
       } catch (error) {
         status.replaceChildren(failure(error));
       } finally {
@@ -273,6 +276,8 @@ async function jobView(id) {
   const status = el("p", { class: "muted" });
   show(el("section", {}, header, status), body);
   const urls = new Map();
+  // Made once, then kept across redraws (its slider position and status stay).
+  let blend = null;
   let events = [];
   let after = 0;
   let finalShown = false;
@@ -293,9 +298,13 @@ async function jobView(id) {
       header.replaceChildren(...[el("h1", { id: "job-title" }, job.name || job.id, " ", badge(jobState(job))),
         el("p", { class: "muted" }, `${job.id} · preset ${job.preset} · ${(job.style_keys || []).length} styles · ${duration(elapsed)} since submission`),
         job.error ? el("p", { class: "error" }, job.error) : null, cancel].filter(Boolean));
+      blend = blend || blendForm(job, () => {
+        finalShown = false;
+        if (!timer) timer = setInterval(refresh, POLL_MS);
+      });
       const parts = [el("section", {}, el("h2", {}, "Stages"), timeline(job)),
         el("section", {}, el("h2", {}, "Training curves"), plots(events)),
-        blendForm(job),
+        blend,
         el("section", {}, el("h2", {}, "Results"), await results(job, urls))];
       body.replaceChildren(...parts.filter(Boolean));
       status.textContent = "";
