@@ -38,14 +38,14 @@ pub struct Storage {
 
 /// A cloud store under `prefix`, configured from `options` (lower-case `aws_*`, `google_*`,
 /// `azure_*` keys; others ignored) as object_store's `parse_url_opts` does, kept as both a
-/// store and a URL signer.
+/// store and a URL signer, with the store's own description (for logs).
 #[cfg(feature = "cloud")]
 fn cloud_store(
     url: &url::Url,
     scheme: ObjectStoreScheme,
     prefix: ObjectPath,
     options: &[(String, String)],
-) -> object_store::Result<(Arc<dyn ObjectStore>, StoreSigner)> {
+) -> object_store::Result<(Arc<dyn ObjectStore>, StoreSigner, String)> {
     use object_store::prefix::PrefixStore;
     macro_rules! build {
         ($builder:ty) => {{
@@ -56,8 +56,14 @@ fn cloud_store(
                     Err(_) => builder,
                 },
             );
-            let store = Arc::new(PrefixStore::new(builder.build()?, prefix));
-            Ok((store.clone(), store))
+            let inner = builder.build()?;
+            let backend = inner.to_string();
+            let store = Arc::new(PrefixStore::new(inner, prefix));
+            Ok((
+                store.clone() as Arc<dyn ObjectStore>,
+                store as StoreSigner,
+                backend,
+            ))
         }};
     }
     match scheme {
@@ -138,10 +144,10 @@ impl Storage {
                 .into_iter()
                 .map(|(k, v)| (k.to_ascii_lowercase(), v))
                 .collect();
-            let (store, signer) = cloud_store(&url, scheme, prefix, &options)
+            let (store, signer, backend) = cloud_store(&url, scheme, prefix, &options)
                 .map_err(|e| anyhow::anyhow!("storage URL {location:?}: {e}"))?;
             Ok(Storage {
-                backend: store.to_string(),
+                backend,
                 store,
                 signer: Some(signer),
                 url: location.trim_end_matches('/').to_string(),
