@@ -137,6 +137,9 @@ pub struct Received<'a> {
     pub path: &'a std::path::Path,
     pub size: u64,
     pub sha256: String,
+    /// An object in the store with the same bytes, copied inside the store instead of
+    /// uploading the spool file again (a resumable upload's only part).
+    pub stored_as: Option<String>,
 }
 
 /// An input validated and stored under `uploads/<id>/`, whose row is not yet inserted.
@@ -181,11 +184,11 @@ pub async fn store_upload(shared: &Shared, input: Received<'_>) -> Result<Stored
         .map_err(|why| invalid("data", why))?;
     let id = format!("u-{}", uuid::Uuid::now_v7().simple());
     let key = format!("uploads/{id}/{}.{extension}", input.kind.as_str());
-    shared
-        .storage
-        .put_file(&key, input.path)
-        .await
-        .map_err(internal)?;
+    match &input.stored_as {
+        Some(source) => shared.storage.copy(source, &key).await,
+        None => shared.storage.put_file(&key, input.path).await,
+    }
+    .map_err(internal)?;
     Ok(StoredUpload {
         receipt: pb::UploadReceipt {
             upload_id: id,
@@ -309,6 +312,7 @@ where
             path: spool.path(),
             size: received,
             sha256: actual,
+            stored_as: None,
         },
     )
     .await?;

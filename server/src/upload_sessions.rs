@@ -377,6 +377,8 @@ pub async fn finish(
         .map_err(internal)?;
     let mut hasher = Sha256::new();
     let mut joined = 0u64;
+    // One part (a stream that was never cut) is copied to the upload's key inside the store.
+    let only_part = (parts.len() == 1).then(|| part_key(id, 0));
     for (offset, size) in parts {
         let key = part_key(id, offset as u64);
         let read = shared
@@ -408,6 +410,7 @@ pub async fn finish(
             path: spool.path(),
             size: committed,
             sha256: actual,
+            stored_as: only_part,
         },
     )
     .await?;

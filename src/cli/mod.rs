@@ -6,6 +6,7 @@ use stylenerf_worker::logging::LogFormat;
 mod bench_chaos;
 mod bench_coordinator;
 mod bench_nerf;
+mod bench_uploads;
 mod bench_vgg;
 mod client;
 mod client_view;
@@ -99,6 +100,8 @@ pub enum BenchCommand {
     /// The service under SIGKILLs: jobs complete, stages complete once, kills cost at most a
     /// checkpoint interval.
     Chaos(bench_chaos::BenchChaosArgs),
+    /// A resumable upload against a one-stream `Upload` of the same archive.
+    Uploads(bench_uploads::BenchUploadsArgs),
 }
 
 /// `demo` draws progress bars on stderr: unless a log level was asked for, keep the embedded
@@ -166,6 +169,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Nerf(args)) => bench_nerf::run(args),
         Command::Bench(BenchCommand::Vgg(args)) => bench_vgg::run(args),
         Command::Bench(BenchCommand::Chaos(args)) => bench_chaos::run(args),
+        Command::Bench(BenchCommand::Uploads(args)) => bench_uploads::run(args),
         Command::Health(args) => health::run(args),
         Command::Completions { shell } => {
             let mut command = <Cli as clap::CommandFactory>::command();

@@ -117,6 +117,7 @@ async fn accept(
             path: spool.path(),
             size: received,
             sha256: actual,
+            stored_as: None,
         },
     )
     .await?;
