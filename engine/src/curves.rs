@@ -27,6 +27,23 @@ impl Series {
         }
     }
 
+    /// One series per named term of a loss log, over the records' steps.
+    pub fn terms<R>(
+        log: &[R],
+        step: fn(&R) -> u64,
+        terms: &[(&str, fn(&R) -> f32)],
+    ) -> Vec<Series> {
+        terms
+            .iter()
+            .map(|(title, value)| {
+                Series::new(
+                    title,
+                    log.iter().map(|r| (step(r) as f64, f64::from(value(r)))),
+                )
+            })
+            .collect()
+    }
+
     /// Worth a panel: two points or more, not all the same value (a term switched off).
     fn drawable(&self) -> bool {
         self.points.len() >= 2 && self.points.iter().any(|p| p.1 != self.points[0].1)
@@ -194,6 +211,11 @@ mod tests {
         .unwrap();
         assert_eq!(img.dimensions(), (2 * PANEL_W, 2 * PANEL_H));
         assert_eq!(label(0.000_12), "1.20e-4");
+        let log = [(10u64, 1.0f32, 4.0f32), (20, 0.5, 3.0)];
+        let terms: [(&str, fn(&(u64, f32, f32)) -> f32); 2] = [("a", |r| r.1), ("b", |r| r.2)];
+        let series = Series::terms(&log, |r| r.0, &terms);
+        assert_eq!(series[1].title, "b");
+        assert_eq!(series[1].points, [(10.0, 4.0), (20.0, 3.0)]);
         assert_eq!(label(31.5), "31.5");
         assert_eq!(label(0.0), "0");
     }

@@ -242,21 +242,16 @@ impl Coordinator {
 
 /// Requeues expired leases and refreshes the gauges every `reaper_interval`.
 async fn reaper(shared: Arc<Shared>) {
-    let mut shutdown = shared.shutdown.clone();
-    let mut tick = tokio::time::interval(shared.config.reaper_interval);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = tick.tick() => {}
-            _ = shutdown.wait_for(|stop| *stop) => return,
-        }
-        if let Err(e) = scheduler::reap(&shared).await {
-            tracing::warn!(error = %e, "reaping expired leases failed");
-        }
-        if let Err(e) = scheduler::refresh_gauges(&shared).await {
-            tracing::warn!(error = %e, "refreshing gauges failed");
-        }
-    }
+    shared
+        .every(shared.config.reaper_interval, || async {
+            if let Err(e) = scheduler::reap(&shared).await {
+                tracing::warn!(error = %e, "reaping expired leases failed");
+            }
+            if let Err(e) = scheduler::refresh_gauges(&shared).await {
+                tracing::warn!(error = %e, "refreshing gauges failed");
+            }
+        })
+        .await
 }
 
 impl CoordinatorHandle {

@@ -229,6 +229,67 @@ pub fn spool_file(shared: &Shared) -> Result<tempfile::NamedTempFile, Status> {
     .map_err(internal)
 }
 
+/// An input arriving into a spool file, counted and hashed as the bytes come.
+pub struct Spool {
+    temp: tempfile::NamedTempFile,
+    file: tokio::fs::File,
+    hasher: Sha256,
+    /// Bytes received so far.
+    pub received: u64,
+}
+
+impl Spool {
+    pub async fn new(shared: &Shared) -> Result<Spool, Status> {
+        let temp = spool_file(shared)?;
+        let file = tokio::fs::File::create(temp.path())
+            .await
+            .map_err(internal)?;
+        Ok(Spool {
+            temp,
+            file,
+            hasher: Sha256::new(),
+            received: 0,
+        })
+    }
+
+    pub async fn write(&mut self, data: &[u8]) -> Result<(), Status> {
+        self.hasher.update(data);
+        self.file.write_all(data).await.map_err(internal)?;
+        self.received += data.len() as u64;
+        Ok(())
+    }
+
+    /// The complete file and the lower-case hex SHA-256 of its content.
+    pub async fn finish(mut self) -> Result<(tempfile::NamedTempFile, String), Status> {
+        self.file.flush().await.map_err(internal)?;
+        Ok((self.temp, hex::encode(self.hasher.finalize())))
+    }
+}
+
+/// Validates and stores a complete spooled input as an upload of `caller`, its size and
+/// checksum already checked.
+pub async fn accept_spooled(
+    shared: &Shared,
+    caller: &Principal,
+    kind: InputKind,
+    filename: &str,
+    (file, sha256, size): (tempfile::NamedTempFile, String, u64),
+) -> Result<pb::UploadReceipt, Status> {
+    let stored = store_upload(
+        shared,
+        Received {
+            kind,
+            filename,
+            path: file.path(),
+            size,
+            sha256,
+            stored_as: None,
+        },
+    )
+    .await?;
+    stored.insert(&caller.name, &shared.db.write).await
+}
+
 /// Receives an `Upload` stream, validates it and stores it as an upload of `caller`.
 pub async fn receive_upload<S>(
     shared: &Shared,
@@ -262,19 +323,13 @@ where
     )
     .await?;
 
-    let spool = spool_file(shared)?;
-    let mut file = tokio::fs::File::create(spool.path())
-        .await
-        .map_err(internal)?;
-    let mut hasher = Sha256::new();
-    let mut received = 0u64;
+    let mut spool = Spool::new(shared).await?;
     while let Some(message) = stream.next().await {
         let data = match message?.part {
             Some(pb::upload_chunk::Part::Data(data)) => data,
             _ => return Err(invalid("header", "only the first message may be a header")),
         };
-        received += data.len() as u64;
-        if received > header.total_size {
+        if spool.received + data.len() as u64 > header.total_size {
             return Err(invalid(
                 "data",
                 format!(
@@ -283,11 +338,10 @@ where
                 ),
             ));
         }
-        hasher.update(&data);
-        file.write_all(&data).await.map_err(internal)?;
+        spool.write(&data).await?;
     }
-    file.flush().await.map_err(internal)?;
-    drop(file);
+    let received = spool.received;
+    let (file, actual) = spool.finish().await?;
     if received != header.total_size {
         return Err(invalid(
             "data",
@@ -297,26 +351,13 @@ where
             ),
         ));
     }
-    let actual = hex::encode(hasher.finalize());
     if actual != header.sha256 {
         return Err(invalid(
             "header.sha256",
             format!("checksum mismatch: the uploaded data has SHA-256 {actual}"),
         ));
     }
-    let stored = store_upload(
-        shared,
-        Received {
-            kind,
-            filename,
-            path: spool.path(),
-            size: received,
-            sha256: actual,
-            stored_as: None,
-        },
-    )
-    .await?;
-    stored.insert(&caller.name, &shared.db.write).await
+    accept_spooled(shared, caller, kind, filename, (file, actual, received)).await
 }
 
 /// Resolves an `InputRef` to the object key of a validated input and the extension to copy

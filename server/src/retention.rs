@@ -123,18 +123,15 @@ pub async fn sweep(shared: &Shared, keep: Duration) -> anyhow::Result<(usize, us
 
 /// Sweeps every `every` until shutdown.
 pub async fn run(shared: Arc<Shared>, keep: Duration, every: Duration) {
-    let mut shutdown = shared.shutdown.clone();
-    let mut tick = tokio::time::interval(every);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = tick.tick() => {}
-            _ = shutdown.wait_for(|stop| *stop) => return,
-        }
-        match sweep(&shared, keep).await {
-            Ok((0, 0)) => {}
-            Ok((jobs, uploads)) => tracing::info!(jobs, uploads, "retention: deleted old data"),
-            Err(e) => tracing::warn!(error = %e, "retention sweep failed"),
-        }
-    }
+    shared
+        .every(every, || async {
+            match sweep(&shared, keep).await {
+                Ok((0, 0)) => {}
+                Ok((jobs, uploads)) => {
+                    tracing::info!(jobs, uploads, "retention: deleted old data")
+                }
+                Err(e) => tracing::warn!(error = %e, "retention sweep failed"),
+            }
+        })
+        .await
 }

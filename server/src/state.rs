@@ -53,4 +53,23 @@ impl Shared {
     pub fn wake_workers(&self) {
         self.ready.notify_waiters();
     }
+
+    /// Runs `pass` at once and then every `interval` (a late pass delays the next) until the
+    /// coordinator shuts down: the loop of the background sweeps.
+    pub async fn every<F, Fut>(&self, interval: std::time::Duration, mut pass: F)
+    where
+        F: FnMut() -> Fut,
+        Fut: std::future::Future<Output = ()>,
+    {
+        let mut shutdown = self.shutdown.clone();
+        let mut tick = tokio::time::interval(interval);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                _ = tick.tick() => {}
+                _ = shutdown.wait_for(|stop| *stop) => return,
+            }
+            pass().await;
+        }
+    }
 }

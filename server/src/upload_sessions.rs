@@ -485,18 +485,13 @@ pub async fn sweep(shared: &Arc<Shared>) -> anyhow::Result<usize> {
 pub async fn run(shared: Arc<Shared>) {
     let every = (shared.config.upload_session_ttl / 10)
         .clamp(Duration::from_secs(1), Duration::from_secs(600));
-    let mut shutdown = shared.shutdown.clone();
-    let mut tick = tokio::time::interval(every);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = tick.tick() => {}
-            _ = shutdown.wait_for(|stop| *stop) => return,
-        }
-        match sweep(&shared).await {
-            Ok(0) => {}
-            Ok(n) => tracing::info!(sessions = n, "deleted idle upload sessions"),
-            Err(e) => tracing::warn!(error = %e, "sweeping upload sessions failed"),
-        }
-    }
+    shared
+        .every(every, || async {
+            match sweep(&shared).await {
+                Ok(0) => {}
+                Ok(n) => tracing::info!(sessions = n, "deleted idle upload sessions"),
+                Err(e) => tracing::warn!(error = %e, "sweeping upload sessions failed"),
+            }
+        })
+        .await
 }

@@ -594,18 +594,12 @@ pub fn run(
         style_loss: st / n,
         vae_reconstruction: vae_losses.reconstruction,
     };
-    let log = &report.loss_log;
-    let term = |title, f: fn(&LossRecord) -> f32| {
-        Series::new(title, log.iter().map(|r| (r.step as f64, f64::from(f(r)))))
-    };
-    curves::save(
-        out,
-        &[
-            term("content loss", |r| r.content),
-            term("style loss", |r| r.style),
-            term("consistency loss", |r| r.consistency),
-        ],
-    )?;
+    let terms: [(&str, fn(&LossRecord) -> f32); 3] = [
+        ("content loss", |r| r.content),
+        ("style loss", |r| r.style),
+        ("consistency loss", |r| r.consistency),
+    ];
+    curves::save(out, &Series::terms(&report.loss_log, |r| r.step, &terms))?;
     write_json_atomic(&out.join("metrics.json"), &report)?;
     Ok(Outcome::Done(report))
 }

@@ -552,20 +552,14 @@ pub fn run(
         latent_deviation: latents.mean_deviation()?,
         loss_log,
     };
-    let log = &report.loss_log;
-    let term = |title, f: fn(&MutualRecord) -> f32| {
-        Series::new(title, log.iter().map(|r| (r.step as f64, f64::from(f(r)))))
-    };
-    curves::save(
-        out,
-        &[
-            term("mimic loss", |r| r.mimic),
-            term("latent NLL", |r| r.latent_nll),
-            term("NeRF style loss", |r| r.nerf_style),
-            term("decoder content loss", |r| r.content),
-            term("decoder style loss", |r| r.style),
-        ],
-    )?;
+    let terms: [(&str, fn(&MutualRecord) -> f32); 5] = [
+        ("mimic loss", |r| r.mimic),
+        ("latent NLL", |r| r.latent_nll),
+        ("NeRF style loss", |r| r.nerf_style),
+        ("decoder content loss", |r| r.content),
+        ("decoder style loss", |r| r.style),
+    ];
+    curves::save(out, &Series::terms(&report.loss_log, |r| r.step, &terms))?;
     write_json_atomic(&out.join("metrics.json"), &report)?;
     Ok(Outcome::Done(report))
 }

@@ -5,19 +5,16 @@
 
 use super::{error, json, Web};
 use crate::auth::CLIENT_ROLES;
-use crate::errors::{internal, invalid};
+use crate::errors::invalid;
 use crate::inputs::{
-    check_declared_size, check_filename, size_limit, spool_file, store_upload, upload_kind,
-    Received,
+    accept_spooled, check_declared_size, check_filename, size_limit, upload_kind, Spool,
 };
 use crate::storage::check_sha256;
 use axum::body::Body;
 use axum::http::{HeaderMap, StatusCode, Uri};
 use axum::response::Response;
 use futures::StreamExt;
-use sha2::{Digest, Sha256};
 use stylenerf_proto::v1 as pb;
-use tokio::io::AsyncWriteExt;
 use tonic::Status;
 
 pub async fn receive(web: &Web, uri: &Uri, headers: &HeaderMap, body: Body) -> Response {
@@ -73,17 +70,11 @@ async fn accept(
         }
     }
     let limit = size_limit(shared, kind).min(room.unwrap_or(u64::MAX));
-    let spool = spool_file(shared)?;
-    let mut file = tokio::fs::File::create(spool.path())
-        .await
-        .map_err(internal)?;
-    let mut hasher = Sha256::new();
-    let mut received = 0u64;
+    let mut spool = Spool::new(shared).await?;
     let mut stream = body.into_data_stream();
     while let Some(chunk) = stream.next().await {
         let chunk = chunk.map_err(|e| invalid("body", format!("the upload broke off: {e}")))?;
-        received += chunk.len() as u64;
-        if received > limit {
+        if spool.received + chunk.len() as u64 > limit {
             return Err(match room {
                 Some(room) if room < size_limit(shared, kind) => {
                     crate::quotas::over_storage_quota(shared, &caller.name, what, room)
@@ -94,32 +85,18 @@ async fn accept(
                 ),
             });
         }
-        hasher.update(&chunk);
-        file.write_all(&chunk).await.map_err(internal)?;
+        spool.write(&chunk).await?;
     }
-    file.flush().await.map_err(internal)?;
-    drop(file);
+    let received = spool.received;
     if received == 0 {
         return Err(invalid("body", "empty"));
     }
-    let actual = hex::encode(hasher.finalize());
+    let (file, actual) = spool.finish().await?;
     if expected.as_ref().is_some_and(|e| *e != actual) {
         return Err(invalid(
             "x-content-sha256",
             format!("checksum mismatch: the uploaded data has SHA-256 {actual}"),
         ));
     }
-    let stored = store_upload(
-        shared,
-        Received {
-            kind,
-            filename,
-            path: spool.path(),
-            size: received,
-            sha256: actual,
-            stored_as: None,
-        },
-    )
-    .await?;
-    stored.insert(&caller.name, &shared.db.write).await
+    accept_spooled(shared, &caller, kind, filename, (file, actual, received)).await
 }

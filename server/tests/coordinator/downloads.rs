@@ -108,3 +108,16 @@ async fn signed_urls_serve_an_object_until_they_expire() {
     assert_eq!(none.code(), tonic::Code::FailedPrecondition);
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test]
+async fn store_signed_urls_need_a_store_that_signs() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = config(dir.path());
+    config.artifact_urls = stylenerf_server::ArtifactUrls::Store;
+    let error = stylenerf_server::Coordinator::start(config)
+        .await
+        .err()
+        .expect("a local folder signs no URLs")
+        .to_string();
+    assert!(error.contains("--artifact-urls store"), "{error}");
+}

@@ -146,6 +146,17 @@ async fn the_page_and_its_json_api_work_like_the_grpc_api() {
         .await;
     assert_eq!((status, fields(&error)), (400, vec!["kind".to_string()]));
     let (status, error) = web
+        .upload(ALICE, "kind=STYLE_IMAGE&filename=../wave.png", &style, None)
+        .await;
+    assert_eq!(
+        (status, fields(&error)),
+        (400, vec!["filename".to_string()])
+    );
+    let (status, error) = web
+        .upload(ALICE, "kind=STYLE_IMAGE&filename=e.png", b"", None)
+        .await;
+    assert_eq!((status, fields(&error)), (400, vec!["body".to_string()]));
+    let (status, error) = web
         .upload(
             ALICE,
             "kind=STYLE_IMAGE&filename=x.png",
