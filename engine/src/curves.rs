@@ -10,6 +10,9 @@ use image::{Rgb, RgbImage};
 use crate::sheet::draw_text;
 use crate::Result;
 
+/// A named term of a loss log: its title and how to read it from a record.
+pub type Term<'a, R> = (&'a str, fn(&R) -> f32);
+
 /// One curve: a title and its (step, value) points.
 pub struct Series {
     pub title: String,
@@ -28,11 +31,7 @@ impl Series {
     }
 
     /// One series per named term of a loss log, over the records' steps.
-    pub fn terms<R>(
-        log: &[R],
-        step: fn(&R) -> u64,
-        terms: &[(&str, fn(&R) -> f32)],
-    ) -> Vec<Series> {
+    pub fn terms<R>(log: &[R], step: fn(&R) -> u64, terms: &[Term<R>]) -> Vec<Series> {
         terms
             .iter()
             .map(|(title, value)| {
@@ -212,7 +211,7 @@ mod tests {
         assert_eq!(img.dimensions(), (2 * PANEL_W, 2 * PANEL_H));
         assert_eq!(label(0.000_12), "1.20e-4");
         let log = [(10u64, 1.0f32, 4.0f32), (20, 0.5, 3.0)];
-        let terms: [(&str, fn(&(u64, f32, f32)) -> f32); 2] = [("a", |r| r.1), ("b", |r| r.2)];
+        let terms: [Term<(u64, f32, f32)>; 2] = [("a", |r| r.1), ("b", |r| r.2)];
         let series = Series::terms(&log, |r| r.0, &terms);
         assert_eq!(series[1].title, "b");
         assert_eq!(series[1].points, [(10.0, 4.0), (20.0, 3.0)]);

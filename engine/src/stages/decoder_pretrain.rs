@@ -29,7 +29,7 @@ use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::{write_json_atomic, CheckpointDir};
-use crate::curves::{self, Series};
+use crate::curves::{self, Series, Term};
 use crate::optim::{Adam, AdamConfig};
 use crate::preset::Preset;
 use crate::rng::Rng;
@@ -594,7 +594,7 @@ pub fn run(
         style_loss: st / n,
         vae_reconstruction: vae_losses.reconstruction,
     };
-    let terms: [(&str, fn(&LossRecord) -> f32); 3] = [
+    let terms: [Term<LossRecord>; 3] = [
         ("content loss", |r| r.content),
         ("style loss", |r| r.style),
         ("consistency loss", |r| r.consistency),

@@ -25,7 +25,7 @@ use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::{write_json_atomic, CheckpointDir};
-use crate::curves::{self, Series};
+use crate::curves::{self, Series, Term};
 use crate::field::saved;
 use crate::optim::{Adam, AdamConfig};
 use crate::preset::Preset;
@@ -552,7 +552,7 @@ pub fn run(
         latent_deviation: latents.mean_deviation()?,
         loss_log,
     };
-    let terms: [(&str, fn(&MutualRecord) -> f32); 5] = [
+    let terms: [Term<MutualRecord>; 5] = [
         ("mimic loss", |r| r.mimic),
         ("latent NLL", |r| r.latent_nll),
         ("NeRF style loss", |r| r.nerf_style),
