@@ -74,3 +74,12 @@ impl EngineError {
         }
     }
 }
+
+impl From<stylenerf_plan::SettingError> for EngineError {
+    fn from(e: stylenerf_plan::SettingError) -> Self {
+        Self::Config {
+            field: e.field,
+            reason: e.reason,
+        }
+    }
+}

@@ -13,7 +13,6 @@ pub mod field;
 pub mod image_io;
 pub mod malloc;
 pub mod optim;
-pub mod preset;
 pub mod render;
 pub mod rng;
 pub mod scene;
@@ -26,3 +25,5 @@ pub mod views;
 pub mod warp;
 
 pub use error::{EngineError, Result};
+/// The catalogue's stages and presets, which every stage configuration is built from.
+pub use stylenerf_plan::{Preset, Stage};

@@ -10,7 +10,7 @@ use serde_json::{json, Value};
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::npy;
 use stylenerf_engine::scene::{LoadOptions, Scene};
-use stylenerf_engine::stages::limits::check_job_overrides;
+use stylenerf_engine::stages::dispatch::check_job_overrides;
 
 /// Any JSON value, a few levels deep, with the numbers and strings that break parsers.
 fn any_json() -> impl Strategy<Value = Value> {

@@ -7,7 +7,6 @@ use std::path::Path;
 
 use candle_core::Device;
 use stylenerf_engine::field::saved;
-use stylenerf_engine::preset::Preset;
 use stylenerf_engine::render::{render_image, render_rays};
 use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions, Surroundings};
 use stylenerf_engine::scene::{Background, LoadOptions, Scene};
@@ -15,6 +14,7 @@ use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig, NerfReport};
 use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
 use stylenerf_engine::stages::{Outcome, StageControl};
 use stylenerf_engine::views::RenderedViews;
+use stylenerf_engine::Preset;
 
 fn tiny_scene(dir: &Path, rig: CameraRig) -> Scene {
     let opts = GenerateOptions {

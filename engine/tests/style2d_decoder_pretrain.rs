@@ -6,7 +6,6 @@ use std::path::Path;
 
 use candle_core::Device;
 use image::Rgb32FImage;
-use stylenerf_engine::preset::Preset;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::decoder_pretrain::{
@@ -15,6 +14,7 @@ use stylenerf_engine::stages::decoder_pretrain::{
 use stylenerf_engine::stages::{Outcome, StageControl};
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::{RenderedViews, ViewInfo, ViewKind};
+use stylenerf_engine::Preset;
 
 fn views(dir: &Path) -> RenderedViews {
     generate(

@@ -9,7 +9,6 @@ use std::sync::OnceLock;
 
 use candle_core::Device;
 use stylenerf_engine::camera::Camera;
-use stylenerf_engine::preset::Preset;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::decoder_pretrain::{self, DecoderPretrainConfig};
@@ -22,6 +21,7 @@ use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::painted;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::RenderedViews;
+use stylenerf_engine::Preset;
 
 /// Outputs of the first three stages, shared by the tests.
 struct Upstream {

@@ -208,9 +208,6 @@ impl Quotas {
     }
 }
 
-/// The default preset names (the engine's presets).
-pub const DEFAULT_PRESETS: &[&str] = &["tiny", "quick", "standard", "paper"];
-
 impl CoordinatorConfig {
     /// A loopback coordinator for embedding (demo, tests, `stylenerf up`): ephemeral port, no
     /// metrics endpoint, SQLite and artifacts under `data_dir`, authentication disabled.
@@ -242,7 +239,10 @@ impl CoordinatorConfig {
             artifact_urls: ArtifactUrls::Auto,
             backups_kept: 48,
             restore_from_backup: false,
-            presets: DEFAULT_PRESETS.iter().map(|s| s.to_string()).collect(),
+            presets: stylenerf_plan::Preset::ALL
+                .iter()
+                .map(|p| p.name().to_string())
+                .collect(),
             limits: Limits::default(),
             spool_dir: None,
             settings_check: None,

@@ -109,7 +109,7 @@ pub async fn find_by_idempotency_key(
 
 /// Output prefix of a stage task.
 pub fn stage_prefix(job_id: &str, stage: Stage) -> String {
-    format!("jobs/{job_id}/{}/", stage.as_str())
+    format!("jobs/{job_id}/{}/", stage.name())
 }
 
 /// The JSON configuration handed to the worker of one task.
@@ -121,7 +121,7 @@ fn task_config(
     extra: &serde_json::Map<String, serde_json::Value>,
 ) -> String {
     let mut config = serde_json::Map::new();
-    config.insert("stage".into(), stage.as_str().into());
+    config.insert("stage".into(), stage.name().into());
     config.insert("preset".into(), preset.into());
     config.insert("overrides".into(), overrides.clone());
     config.insert("num_styles".into(), num_styles.into());
@@ -131,8 +131,9 @@ fn task_config(
     serde_json::Value::Object(config).to_string()
 }
 
-/// Inserts a job, its five tasks (the first ready, the others pending on their predecessor) and
-/// the creation events. Returns `None` when the idempotency key is already taken.
+/// Inserts a job, a task per stage (those without upstream stages ready, the others pending on
+/// the tasks of their upstream stages) and the creation events. Returns `None` when the
+/// idempotency key is already taken.
 pub async fn insert_job(
     conn: &mut SqliteConnection,
     batch: &mut EventBatch,
@@ -181,9 +182,10 @@ pub async fn insert_job(
         &job.note,
     ));
     let no_extra = serde_json::Map::new();
-    let mut previous: Option<i64> = None;
+    let mut ids: Vec<(Stage, i64)> = Vec::new();
     for stage in Stage::ALL {
-        let state = if previous.is_none() {
+        let root = stage.upstream().is_empty();
+        let state = if root {
             task_state::READY
         } else {
             task_state::PENDING
@@ -210,18 +212,19 @@ pub async fn insert_job(
              RETURNING id",
         )
         .bind(&job.id)
-        .bind(stage.as_str())
+        .bind(stage.name())
         .bind(state)
         .bind(config)
         .bind(memory)
         .bind(stage_prefix(&job.id, stage))
         .bind(max_attempts as i64)
-        .bind(if previous.is_none() { now } else { 0 })
+        .bind(if root { now } else { 0 })
         .bind(now)
         .bind(job.priority)
         .fetch_one(&mut *conn)
         .await?;
-        if let Some(dep) = previous {
+        // `Stage::ALL` is in dependency order: every upstream task is already inserted.
+        for (_, dep) in ids.iter().filter(|(s, _)| stage.upstream().contains(s)) {
             sqlx::query("INSERT INTO task_deps (task_id, depends_on) VALUES (?, ?)")
                 .bind(id)
                 .bind(dep)
@@ -231,12 +234,12 @@ pub async fn insert_job(
         batch.push(NewEvent::task(
             &job.id,
             id,
-            stage.as_str(),
+            stage.name(),
             state,
             0,
             "task created",
         ));
-        previous = Some(id);
+        ids.push((stage, id));
     }
     Ok(true)
 }
@@ -299,7 +302,9 @@ fn parse_tasks(json: &str) -> Result<Vec<pb::Task>, Status> {
                 .into_iter()
                 .map(|(key, size, sha256)| pb::Artifact { key, size, sha256 })
                 .collect();
-            let depends_on = t.deps.split(',').filter_map(|d| d.parse().ok()).collect();
+            let mut depends_on: Vec<u64> =
+                t.deps.split(',').filter_map(|d| d.parse().ok()).collect();
+            depends_on.sort_unstable();
             task_to_pb(t.task, outputs, depends_on)
         })
         .collect())
@@ -648,7 +653,7 @@ pub async fn add_render(
     batch.push(NewEvent::task(
         job_id,
         id,
-        Stage::RenderStylized.as_str(),
+        Stage::RenderStylized.name(),
         task_state::READY,
         0,
         "render requested",

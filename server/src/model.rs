@@ -13,65 +13,12 @@ pub fn now_ms() -> i64 {
         .unwrap_or(0)
 }
 
-/// The five stages of a job, in DAG order.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Stage {
-    NerfPretrain,
-    RenderViews,
-    DecoderPretrain,
-    MutualLearning,
-    RenderStylized,
-}
-
-impl Stage {
-    pub const ALL: [Stage; 5] = [
-        Stage::NerfPretrain,
-        Stage::RenderViews,
-        Stage::DecoderPretrain,
-        Stage::MutualLearning,
-        Stage::RenderStylized,
-    ];
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Stage::NerfPretrain => "nerf_pretrain",
-            Stage::RenderViews => "render_views",
-            Stage::DecoderPretrain => "decoder_pretrain",
-            Stage::MutualLearning => "mutual_learning",
-            Stage::RenderStylized => "render_stylized",
-        }
-    }
-
-    pub fn parse(s: &str) -> Option<Stage> {
-        Stage::ALL.into_iter().find(|stage| stage.as_str() == s)
-    }
-
-    pub fn to_pb(self) -> pb::Stage {
-        match self {
-            Stage::NerfPretrain => pb::Stage::NerfPretrain,
-            Stage::RenderViews => pb::Stage::RenderViews,
-            Stage::DecoderPretrain => pb::Stage::DecoderPretrain,
-            Stage::MutualLearning => pb::Stage::MutualLearning,
-            Stage::RenderStylized => pb::Stage::RenderStylized,
-        }
-    }
-
-    /// Memory reserved for a task of this stage when the job does not say.
-    pub fn default_memory_bytes(self) -> i64 {
-        const MIB: i64 = 1 << 20;
-        match self {
-            Stage::NerfPretrain => 1024 * MIB,
-            Stage::RenderViews => 512 * MIB,
-            Stage::DecoderPretrain => 2048 * MIB,
-            Stage::MutualLearning => 2048 * MIB,
-            Stage::RenderStylized => 1024 * MIB,
-        }
-    }
-}
+/// The stages of a job: the catalogue's.
+pub use stylenerf_plan::Stage;
 
 /// Converts a stored stage name to its protocol enum value (unknown → unspecified).
 pub fn stage_pb(s: &str) -> i32 {
-    Stage::parse(s).map_or(pb::Stage::Unspecified, Stage::to_pb) as i32
+    Stage::parse(s).map_or(pb::Stage::Unspecified, pb::Stage::from) as i32
 }
 
 /// Job states as stored.

@@ -374,7 +374,10 @@ async fn claim(
         &message,
     ));
     // Only the first lease of a job's first stage can start it.
-    if !(task.core && task.attempt == 1 && task.stage == Stage::NerfPretrain.as_str()) {
+    if !(task.core
+        && task.attempt == 1
+        && Stage::parse(&task.stage).is_some_and(|s| s.upstream().is_empty()))
+    {
         return Ok(task);
     }
     let started = sqlx::query(
@@ -415,8 +418,9 @@ async fn assignment(shared: &Shared, task: TaskRow) -> Result<pb::TaskAssignment
             .bind(&task.job_id)
             .fetch_one(pool)
             .await?;
-    // The first stage has no upstream outputs.
-    let rows: Vec<UpstreamRow> = if task.stage == Stage::NerfPretrain.as_str() {
+    // The outputs of the stages this one reads.
+    let upstream = Stage::parse(&task.stage).map_or(&[][..], Stage::upstream);
+    let rows: Vec<UpstreamRow> = if upstream.is_empty() {
         Vec::new()
     } else {
         sqlx::query_as(
@@ -428,10 +432,9 @@ async fn assignment(shared: &Shared, task: TaskRow) -> Result<pb::TaskAssignment
         .fetch_all(pool)
         .await?
     };
-    let order = |s: &str| Stage::ALL.iter().position(|x| x.as_str() == s);
     let mut inputs: Vec<pb::StageInput> = Vec::new();
     for (id, stage, prefix, key, size, sha256) in rows {
-        if order(&stage) >= order(&task.stage) {
+        if !Stage::parse(&stage).is_some_and(|s| upstream.contains(&s)) {
             continue;
         }
         if inputs.last().is_none_or(|i| i.task_id != id as u64) {
@@ -1029,19 +1032,15 @@ pub async fn refresh_gauges(shared: &Shared) -> Result<(), sqlx::Error> {
     let mut series: BTreeMap<(&'static str, &'static str, String), (f64, f64)> = BTreeMap::new();
     for stage in Stage::ALL {
         for device in ["cpu", "cuda"] {
-            series.insert((stage.as_str(), device, String::new()), (0.0, 0.0));
+            series.insert((stage.name(), device, String::new()), (0.0, 0.0));
         }
     }
     for (stage, state, require_cuda, labels, count) in counts {
-        let Some(stage) = Stage::ALL.iter().find(|s| s.as_str() == stage) else {
+        let Some(stage) = Stage::parse(&stage) else {
             continue;
         };
         let entry = series
-            .entry((
-                stage.as_str(),
-                device_class(require_cuda),
-                label_set(&labels),
-            ))
+            .entry((stage.name(), device_class(require_cuda), label_set(&labels)))
             .or_default();
         if state == task_state::READY {
             entry.0 += count as f64;

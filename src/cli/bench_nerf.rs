@@ -9,6 +9,7 @@ use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions};
 use stylenerf_engine::scene::Scene;
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
 use stylenerf_engine::stages::Outcome;
+use stylenerf_plan::Stage;
 
 use super::common::{stage_progress, TrainingArgs};
 
@@ -58,7 +59,9 @@ pub fn run(args: BenchNerfArgs) -> anyhow::Result<()> {
         };
         generate(&opts, &data)?;
     }
-    let mut cfg: NerfConfig = args.training.config("nerf_pretrain", NerfConfig::preset)?;
+    let mut cfg: NerfConfig = args
+        .training
+        .config(Stage::NerfPretrain, NerfConfig::preset)?;
     let scene = Scene::load(&data, &cfg.load_options())?;
     cfg.eval_every = (cfg.steps / args.evals.max(1)).max(1);
     let out = work.join(format!("nerf-{}", args.training.preset));

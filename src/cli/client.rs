@@ -15,7 +15,7 @@ use stylenerf_client::{
     json as to_json, names, pb, Client, ConnectOptions, DownloadOptions, Input, JobSpec,
     ListFilter, RenderSpec, WatchOptions, DEFAULT_ENDPOINT,
 };
-use stylenerf_engine::preset::parse_override;
+use stylenerf_plan::settings::parse_override;
 
 /// How results are printed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]

@@ -6,8 +6,10 @@ use std::time::Duration;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use stylenerf_engine::device::parse_device;
-use stylenerf_engine::preset::{apply_overrides, parse_override, Preset};
-use stylenerf_engine::stages::{limits, StageControl};
+use stylenerf_engine::stages::dispatch::check_job_overrides;
+use stylenerf_engine::stages::StageControl;
+use stylenerf_plan::settings::{apply_overrides, parse_override};
+use stylenerf_plan::{bounds, Preset, Stage};
 
 /// Preset, overrides and device, shared by every training command.
 #[derive(Debug, Clone, Args)]
@@ -28,7 +30,7 @@ impl TrainingArgs {
     /// stage's bounds.
     pub fn config<T: serde::Serialize + serde::de::DeserializeOwned>(
         &self,
-        stage: &str,
+        stage: Stage,
         preset: impl Fn(Preset) -> T,
     ) -> anyhow::Result<T> {
         let overrides = self
@@ -37,7 +39,7 @@ impl TrainingArgs {
             .map(|o| parse_override(o))
             .collect::<Result<Vec<_>, _>>()?;
         let config = apply_overrides(&preset(self.preset), &overrides)?;
-        limits::check(stage, &config)?;
+        bounds::check(stage, &config)?;
         Ok(config)
     }
 
@@ -49,7 +51,7 @@ impl TrainingArgs {
 /// The engine's check of a job's preset and overrides, for a coordinator this binary starts:
 /// a mistyped or out-of-range override is refused at submission instead of failing a worker.
 pub fn engine_settings_check() -> stylenerf_server::SettingsCheck {
-    stylenerf_server::SettingsCheck(std::sync::Arc::new(limits::check_job_overrides))
+    stylenerf_server::SettingsCheck(std::sync::Arc::new(check_job_overrides))
 }
 
 /// A progress bar for one stage and a [`StageControl`] that feeds it.

@@ -7,6 +7,7 @@ use anyhow::Context;
 use clap::Subcommand;
 use stylenerf_engine::scene::Scene;
 use stylenerf_engine::stages::{nerf_pretrain, render_views, Outcome};
+use stylenerf_plan::Stage;
 
 use super::common::{stage_progress, TrainingArgs};
 
@@ -44,7 +45,7 @@ pub fn run(cmd: NerfCommand) -> anyhow::Result<()> {
             out,
             training,
         } => {
-            let cfg = training.config("nerf_pretrain", nerf_pretrain::NerfConfig::preset)?;
+            let cfg = training.config(Stage::NerfPretrain, nerf_pretrain::NerfConfig::preset)?;
             let device = training.device()?;
             let scene = Scene::load(&data, &cfg.load_options())
                 .with_context(|| format!("loading {}", data.display()))?;
@@ -74,7 +75,8 @@ pub fn run(cmd: NerfCommand) -> anyhow::Result<()> {
             out,
             training,
         } => {
-            let cfg = training.config("render_views", render_views::RenderViewsConfig::preset)?;
+            let cfg =
+                training.config(Stage::RenderViews, render_views::RenderViewsConfig::preset)?;
             let device = training.device()?;
             let (bar, control) = stage_progress("render_views");
             let outcome = render_views::run(&field, &cfg, &out, &control, &device)?;

@@ -5,22 +5,21 @@
 //! is skipped; an interrupted stage resumes from its checkpoint. Overrides name their stage:
 //! `--set mutual_learning.steps=300`.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::Args;
-use stylenerf_engine::preset::{parse_override, stage_overrides, Preset};
-use stylenerf_engine::scene::Scene;
-use stylenerf_engine::stages::render_stylized::{self, markdown_table, RenderStylizedConfig};
-use stylenerf_engine::stages::{
-    decoder_pretrain, mutual_learning, nerf_pretrain, render_views, Outcome, STAGES,
-};
+use stylenerf_engine::device::parse_device;
+use stylenerf_engine::stages::dispatch::{self, StageConfig, StageReport};
+use stylenerf_engine::stages::render_stylized::markdown_table;
+use stylenerf_engine::stages::Outcome;
 use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::weights::EncoderWeights;
-use stylenerf_engine::views::RenderedViews;
+use stylenerf_plan::settings::parse_override;
+use stylenerf_plan::{Override, Preset, Stage};
 
 use super::common::stage_progress;
-use stylenerf_engine::device::parse_device;
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
@@ -40,8 +39,8 @@ pub struct RunArgs {
     #[arg(long = "render")]
     render: Vec<String>,
     /// Stop after this stage (e.g. `decoder_pretrain` to compare 2D settings).
-    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(STAGES))]
-    until: Option<String>,
+    #[arg(long)]
+    until: Option<Stage>,
     /// A pretrained decoder to start decoder_pretrain from (this project's safetensors, or
     /// AdaIN's `decoder.pth` together with `--encoder vgg_normalised.pth`).
     #[arg(long)]
@@ -83,21 +82,16 @@ struct PipelineArgs {
 /// What every stage needs from the command line.
 struct Pipeline {
     preset: Preset,
-    overrides: Vec<(String, serde_json::Value)>,
+    overrides: Vec<Override>,
     device: candle_core::Device,
     styles: Vec<StyleImage>,
     encoder: EncoderWeights,
-    out: PathBuf,
-    until: Option<String>,
+    /// The run's folder: `<stage>/` per stage.
+    run: PathBuf,
 }
 
 impl Pipeline {
-    fn new(
-        args: &PipelineArgs,
-        styles: &[String],
-        out: &Path,
-        until: Option<String>,
-    ) -> anyhow::Result<Self> {
+    fn new(args: &PipelineArgs, styles: &[String], run: &Path) -> anyhow::Result<Self> {
         let overrides = args
             .overrides
             .iter()
@@ -113,74 +107,52 @@ impl Pipeline {
             device: parse_device(&args.device)?,
             styles,
             encoder: EncoderWeights::load_or_bundled(args.encoder.as_deref())?,
-            out: out.to_path_buf(),
-            until,
+            run: run.to_path_buf(),
         })
     }
 
-    fn dir(&self, stage: &str) -> PathBuf {
-        self.out.join(stage)
-    }
-
-    /// The stage's configuration: its preset with the overrides addressed to it.
-    fn config<T: serde::Serialize + serde::de::DeserializeOwned>(
-        &self,
-        stage: &str,
-        preset: impl Fn(Preset) -> T,
-    ) -> anyhow::Result<T> {
-        Ok(stage_overrides(
-            &preset(self.preset),
-            stage,
-            &self.overrides,
-        )?)
-    }
-
-    /// Runs `f` unless the stage already finished; `false` when the pipeline should stop here
-    /// (the stage stopped early, or it is the `--until` stage).
-    fn stage<T>(
-        &self,
-        stage: &str,
-        f: impl FnOnce(
-            &Path,
-            &stylenerf_engine::stages::StageControl,
-        ) -> stylenerf_engine::Result<Outcome<T>>,
-    ) -> anyhow::Result<bool> {
-        let dir = self.dir(stage);
-        let last = self.until.as_deref() == Some(stage);
-        if dir.join("metrics.json").exists() {
-            println!("{stage}: already complete in {}", dir.display());
-            return Ok(!last);
+    /// The stage's configuration (`render` replaces render_stylized's style specs when given).
+    fn config(&self, stage: Stage, render: &[String]) -> anyhow::Result<StageConfig> {
+        let mut config = StageConfig::new(stage, self.preset, &self.overrides)?;
+        if let StageConfig::RenderStylized(cfg) = &mut config {
+            if !render.is_empty() {
+                cfg.styles = render.to_vec();
+            }
         }
-        let (bar, control) = stage_progress(stage);
-        let outcome = f(&dir, &control).with_context(|| format!("stage {stage}"))?;
-        bar.finish();
-        Ok(matches!(outcome, Outcome::Done(_)) && !last)
+        Ok(config)
     }
 
-    fn render_stylized(&self, specs: &[String], out: &Path) -> anyhow::Result<()> {
-        let cfg = RenderStylizedConfig {
-            styles: specs.to_vec(),
-            ..self.config("render_stylized", RenderStylizedConfig::preset)?
+    /// Runs `stage` into `out`, reading the run's upstream folders.
+    fn run_stage(
+        &self,
+        config: &StageConfig,
+        data: Option<&Path>,
+        init_decoder: Option<&Path>,
+        out: &Path,
+    ) -> anyhow::Result<Outcome<StageReport>> {
+        let stage = config.stage();
+        let upstream: BTreeMap<Stage, PathBuf> = stage
+            .upstream()
+            .iter()
+            .map(|&of| (of, self.run.join(of.name())))
+            .collect();
+        let inputs = dispatch::Inputs {
+            dataset: data,
+            upstream: &upstream,
+            styles: &self.styles,
+            encoder: Some(&self.encoder),
+            init_decoder,
+            path: None,
         };
-        let views = RenderedViews::load(&self.dir("render_views"))?;
-        let (bar, control) = stage_progress("render_stylized");
-        let outcome = render_stylized::run(
-            render_stylized::Inputs {
-                field_dir: &self.dir("nerf_pretrain"),
-                views: &views,
-                decoder_dir: &self.dir("decoder_pretrain"),
-                mutual_dir: &self.dir("mutual_learning"),
-                styles: &self.styles,
-                encoder: &self.encoder,
-                path: None,
-            },
-            &cfg,
-            out,
-            &control,
-            &self.device,
-        )?;
+        let (bar, control) = stage_progress(stage.name());
+        let outcome = dispatch::run(config, &inputs, out, &control, &self.device)
+            .with_context(|| format!("stage {stage}"))?;
         bar.finish();
-        if let Outcome::Done(report) = outcome {
+        if let (
+            Outcome::Done(StageReport::RenderStylized(report)),
+            StageConfig::RenderStylized(cfg),
+        ) = (&outcome, config)
+        {
             for spec in &report.specs {
                 let dir = out.join(&spec.folder);
                 println!(
@@ -193,62 +165,46 @@ impl Pipeline {
                 );
             }
             if cfg.eval {
-                println!("\n{}", markdown_table(&report, &cfg));
+                println!("\n{}", markdown_table(report, cfg));
             }
         }
-        Ok(())
+        Ok(outcome)
     }
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
-    let p = Pipeline::new(&args.common, &args.styles, &args.out, args.until.clone())?;
-    let nerf = p.config("nerf_pretrain", nerf_pretrain::NerfConfig::preset)?;
-    let scene = Scene::load(&args.data, &nerf.load_options())
-        .with_context(|| format!("loading {}", args.data.display()))?;
-    if !p.stage("nerf_pretrain", |out, c| {
-        nerf_pretrain::run(&scene, &nerf, out, c, &p.device)
-    })? {
-        return Ok(());
+    let p = Pipeline::new(&args.common, &args.styles, &args.out)?;
+    // Every configuration first, so a bad override fails before any training.
+    let configs = Stage::ALL
+        .into_iter()
+        .map(|stage| p.config(stage, &args.render))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    for config in &configs {
+        let stage = config.stage();
+        let out = args.out.join(stage.name());
+        if out.join("metrics.json").exists() {
+            println!("{stage}: already complete in {}", out.display());
+        } else {
+            let outcome = p
+                .run_stage(config, Some(&args.data), args.decoder.as_deref(), &out)
+                .with_context(|| match stage.inputs().dataset {
+                    true => format!("--data {}", args.data.display()),
+                    false => format!("--out {}", args.out.display()),
+                })?;
+            if matches!(outcome, Outcome::Stopped { .. }) {
+                return Ok(());
+            }
+        }
+        if args.until == Some(stage) {
+            return Ok(());
+        }
     }
-    let rv = p.config("render_views", render_views::RenderViewsConfig::preset)?;
-    if !p.stage("render_views", |out, c| {
-        render_views::run(&p.dir("nerf_pretrain"), &rv, out, c, &p.device)
-    })? {
-        return Ok(());
-    }
-    let views = RenderedViews::load(&p.dir("render_views"))?;
-    let dp = p.config(
-        "decoder_pretrain",
-        decoder_pretrain::DecoderPretrainConfig::preset,
-    )?;
-    if !p.stage("decoder_pretrain", |out, c| {
-        let inputs = decoder_pretrain::Inputs {
-            views: &views,
-            styles: &p.styles,
-            encoder: &p.encoder,
-            init_decoder: args.decoder.as_deref(),
-        };
-        decoder_pretrain::run(inputs, &dp, out, c, &p.device)
-    })? {
-        return Ok(());
-    }
-    let ml = p.config("mutual_learning", mutual_learning::MutualConfig::preset)?;
-    if !p.stage("mutual_learning", |out, c| {
-        let inputs = mutual_learning::Inputs {
-            field_dir: &p.dir("nerf_pretrain"),
-            views: &views,
-            decoder_dir: &p.dir("decoder_pretrain"),
-            styles: &p.styles,
-            encoder: &p.encoder,
-        };
-        mutual_learning::run(inputs, &ml, out, c, &p.device)
-    })? {
-        return Ok(());
-    }
-    p.render_stylized(&args.render, &p.dir("render_stylized"))
+    Ok(())
 }
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
-    let p = Pipeline::new(&args.common, &args.styles, &args.run, None)?;
-    p.render_stylized(&args.render, &args.run.join("eval"))
+    let p = Pipeline::new(&args.common, &args.styles, &args.run)?;
+    let config = p.config(Stage::RenderStylized, &args.render)?;
+    p.run_stage(&config, None, None, &args.run.join("eval"))?;
+    Ok(())
 }

@@ -13,6 +13,7 @@ use candle_core::Device;
 use stylenerf_engine::checkpoint::CheckpointDir;
 use stylenerf_engine::stages::{Outcome, StageControl};
 use stylenerf_engine::EngineError;
+use stylenerf_plan::Stage;
 use stylenerf_proto::v1 as pb;
 use tokio::sync::broadcast;
 
@@ -137,13 +138,13 @@ impl TaskContext {
 
     /// Downloads the outputs of the upstream `stage` into `inputs/<stage>/`; returns that
     /// folder.
-    pub async fn upstream(&self, stage: pb::Stage) -> Result<PathBuf, TaskError> {
-        let name = stages::stage_name(stage);
+    pub async fn upstream(&self, stage: Stage) -> Result<PathBuf, TaskError> {
+        let name = stage.name();
         let input = self
             .assignment
             .inputs
             .iter()
-            .find(|i| i.stage == stage as i32)
+            .find(|i| pb::Stage::of(i.stage) == Some(stage))
             .ok_or_else(|| {
                 TaskError::permanent(format!(
                     "the assignment lists no outputs of the upstream stage {name}"
@@ -352,8 +353,7 @@ pub fn start_task(
     assignment: pb::TaskAssignment,
     events: broadcast::Sender<WorkerEvent>,
 ) -> (Arc<TaskStop>, impl std::future::Future<Output = TaskResult>) {
-    let stage = pb::Stage::try_from(assignment.stage).unwrap_or(pb::Stage::Unspecified);
-    let tracker = Arc::new(ProgressTracker::new(stages::stage_name(stage)));
+    let tracker = Arc::new(ProgressTracker::new(stages::stage_name(assignment.stage)));
     let sink = tracker.clone();
     let mut control = StageControl::default().with_sink(move |p| sink.update(p));
     control.checkpoint_every_steps = settings.checkpoint_every_steps;
@@ -593,7 +593,7 @@ async fn execute(
     let manifest = serde_json::json!({
         "task_id": a.task_id,
         "job_id": a.job_id,
-        "stage": stages::stage_name(pb::Stage::try_from(a.stage).unwrap_or_default()),
+        "stage": stages::stage_name(a.stage),
         "attempt": a.attempt,
         "metrics": metrics,
         "outputs": outputs.iter().map(|o| serde_json::json!({

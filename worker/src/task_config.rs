@@ -12,22 +12,19 @@
 //! Nested objects are flattened to dotted paths, so every leaf value sets one setting. The first
 //! path segment must be a stage name; a stage sees only its own overrides.
 
-use serde::de::DeserializeOwned;
-use serde::Serialize;
 use serde_json::Value;
-use stylenerf_engine::preset::{flatten_overrides, stage_overrides, Preset};
+use stylenerf_engine::stages::dispatch::StageConfig;
+use stylenerf_plan::settings::{addressed, flatten_overrides};
+use stylenerf_plan::{Override, Preset, Stage};
 
 use crate::error::TaskError;
-
-/// Stage names, as used in `config_json` and override keys.
-pub use stylenerf_engine::stages::STAGES as STAGE_NAMES;
 
 /// The parsed `config_json` of a task.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TaskConfig {
     pub preset: Preset,
     /// Every override as (full dotted path, value), e.g. `("nerf_pretrain.steps", 2000)`.
-    pub overrides: Vec<(String, Value)>,
+    pub overrides: Vec<Override>,
     /// The whole document, for stage-specific keys (`camera_path`, `style_blend`, …).
     pub raw: serde_json::Map<String, Value>,
 }
@@ -48,7 +45,7 @@ impl TaskConfig {
         let preset = match raw.get("preset") {
             None | Some(Value::Null) => Preset::default(),
             Some(Value::String(s)) if s.is_empty() => Preset::default(),
-            Some(Value::String(s)) => s.parse()?,
+            Some(Value::String(s)) => s.parse().map_err(|e| bad(format!("{e}")))?,
             Some(v) => return Err(bad(format!("`preset` must be a string, not {v}"))),
         };
         let overrides = match raw.get("overrides") {
@@ -57,14 +54,7 @@ impl TaskConfig {
             Some(v) => return Err(bad(format!("`overrides` must be an object, not {v}"))),
         };
         for (key, _) in &overrides {
-            let stage = key.split('.').next().unwrap_or_default();
-            if !STAGE_NAMES.contains(&stage) || !key.contains('.') {
-                return Err(bad(format!(
-                    "override `{key}`: keys start with a stage name ({}), e.g. \
-                     `nerf_pretrain.steps`",
-                    STAGE_NAMES.join(", ")
-                )));
-            }
+            addressed(key).map_err(|e| bad(format!("override `{key}`: {}", e.reason)))?;
         }
         Ok(Self {
             preset,
@@ -75,12 +65,8 @@ impl TaskConfig {
 
     /// `stage`'s configuration: its preset with its overrides applied, within its bounds.
     /// Errors name the full key.
-    pub fn stage_config<T: Serialize + DeserializeOwned>(
-        &self,
-        stage: &str,
-        preset: impl Fn(Preset) -> T,
-    ) -> Result<T, TaskError> {
-        stage_overrides(&preset(self.preset), stage, &self.overrides)
+    pub fn stage_config(&self, stage: Stage) -> Result<StageConfig, TaskError> {
+        StageConfig::new(stage, self.preset, &self.overrides)
             .map_err(|e| TaskError::permanent(format!("overrides of {stage}: {e}")))
     }
 }
@@ -88,8 +74,6 @@ impl TaskConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use stylenerf_engine::stages::nerf_pretrain::NerfConfig;
-    use stylenerf_engine::stages::render_views::RenderViewsConfig;
 
     #[test]
     fn flat_and_nested_overrides_reach_their_stage() {
@@ -100,11 +84,13 @@ mod tests {
         )
         .unwrap();
         assert_eq!(c.preset, Preset::Tiny);
-        let cfg: NerfConfig = c.stage_config("nerf_pretrain", NerfConfig::preset).unwrap();
+        let Ok(StageConfig::NerfPretrain(cfg)) = c.stage_config(Stage::NerfPretrain) else {
+            panic!("a nerf_pretrain configuration");
+        };
         assert_eq!((cfg.steps, cfg.field.grid.levels), (7, 3));
-        let views: RenderViewsConfig = c
-            .stage_config("render_views", RenderViewsConfig::preset)
-            .unwrap();
+        let Ok(StageConfig::RenderViews(views)) = c.stage_config(Stage::RenderViews) else {
+            panic!("a render_views configuration");
+        };
         assert_eq!(views.path_frames, 2);
     }
 
@@ -116,9 +102,7 @@ mod tests {
             "{err}"
         );
         let c = TaskConfig::parse(r#"{"overrides": {"nerf_pretrain.nope": 3}}"#).unwrap();
-        let err = c
-            .stage_config("nerf_pretrain", NerfConfig::preset)
-            .unwrap_err();
+        let err = c.stage_config(Stage::NerfPretrain).unwrap_err();
         assert!(
             err.reason.contains("nope") && err.reason.contains("no such setting"),
             "{err}"

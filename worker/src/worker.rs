@@ -232,8 +232,7 @@ impl Worker {
                         }
                         tracing::info!(
                             task_id = task.task_id, job_id = %task.job_id,
-                            stage = crate::stages::stage_name(
-                                pb::Stage::try_from(task.stage).unwrap_or_default()),
+                            stage = crate::stages::stage_name(task.stage),
                             attempt = task.attempt, "task leased"
                         );
                         let (stop, run) = start_task(
@@ -317,10 +316,9 @@ impl Worker {
                 "released"
             }
         };
-        let stage = pb::Stage::try_from(task.stage).unwrap_or_default();
         metrics::counter!(
             "stylenerf_worker_tasks_total",
-            "stage" => crate::stages::stage_name(stage),
+            "stage" => crate::stages::stage_name(task.stage),
             "outcome" => outcome,
         )
         .increment(1);
@@ -328,7 +326,7 @@ impl Worker {
         let _ = self.handle.events.send(WorkerEvent::TaskFinished {
             task_id: task.task_id,
             job_id: task.job_id,
-            stage,
+            stage: pb::Stage::try_from(task.stage).unwrap_or_default(),
             result,
         });
     }

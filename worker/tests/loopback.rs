@@ -76,7 +76,7 @@ async fn runs_all_five_stages_and_stores_their_artifacts() {
 }
 
 fn stage_dir(stage: pb::Stage) -> &'static str {
-    stylenerf_worker::stages::stage_name(stage)
+    stylenerf_worker::stages::stage_name(stage as i32)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

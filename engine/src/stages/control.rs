@@ -107,3 +107,13 @@ pub enum Outcome<T> {
     /// running it again resumes from there.
     Stopped { step: u64 },
 }
+
+impl<T> Outcome<T> {
+    /// The outcome with its report mapped by `f`.
+    pub fn map<U>(self, f: impl FnOnce(T) -> U) -> Outcome<U> {
+        match self {
+            Outcome::Done(report) => Outcome::Done(f(report)),
+            Outcome::Stopped { step } => Outcome::Stopped { step },
+        }
+    }
+}

@@ -31,7 +31,6 @@ use serde::{Deserialize, Serialize};
 use crate::checkpoint::{write_json_atomic, CheckpointDir};
 use crate::curves::{self, Series, Term};
 use crate::optim::{Adam, AdamConfig};
-use crate::preset::Preset;
 use crate::rng::Rng;
 use crate::stages::window::Window;
 use crate::stages::{Outcome, Progress, StageControl};
@@ -47,6 +46,7 @@ use crate::style2d::weights::EncoderWeights;
 use crate::views::RenderedViews;
 use crate::warp::{Warp, WarpConfig};
 use crate::{EngineError, Result};
+use stylenerf_plan::Preset;
 
 /// Configuration of the stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -28,7 +28,6 @@ use crate::checkpoint::{write_json_atomic, CheckpointDir};
 use crate::curves::{self, Series, Term};
 use crate::field::saved;
 use crate::optim::{Adam, AdamConfig};
-use crate::preset::Preset;
 use crate::rng::Rng;
 use crate::stages::decoder_pretrain::{crop_views, StylesFile};
 use crate::stages::window::Window;
@@ -46,6 +45,7 @@ use crate::stylized::style_module::{StyleModule, StyleModuleConfig};
 use crate::stylized::surface::SurfaceSamples;
 use crate::views::RenderedViews;
 use crate::{EngineError, Result};
+use stylenerf_plan::Preset;
 
 /// Configuration of the stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

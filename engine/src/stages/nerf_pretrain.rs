@@ -19,7 +19,6 @@ use crate::field::radiance::{FieldConfig, RadianceField};
 use crate::field::saved::{self, FieldMeta};
 use crate::field::space::FieldSpace;
 use crate::optim::{Adam, AdamConfig, LrSchedule};
-use crate::preset::Preset;
 use crate::render::distortion::distortion_loss;
 use crate::render::march::RayBatch;
 use crate::render::{render_image, render_rays, step_size, SamplingConfig};
@@ -27,6 +26,7 @@ use crate::rng::Rng;
 use crate::scene::{Background, LoadOptions, Scene};
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::{EngineError, Result};
+use stylenerf_plan::Preset;
 
 /// Training configuration of the field.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -27,7 +27,6 @@ use crate::checkpoint::write_json_atomic;
 use crate::eval::{fidelity, GapError, PathWarps};
 use crate::field::saved;
 use crate::image_io;
-use crate::preset::Preset;
 use crate::stages::decoder_pretrain::crop_views;
 use crate::stages::mutual_learning::LatentsFile;
 use crate::stages::{Outcome, Progress, StageControl};
@@ -45,6 +44,7 @@ use crate::stylized::surface::SurfaceSamples;
 use crate::views::RenderedViews;
 use crate::warp::WarpConfig;
 use crate::{EngineError, Result};
+use stylenerf_plan::Preset;
 
 /// Configuration of the stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

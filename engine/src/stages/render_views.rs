@@ -9,12 +9,12 @@ use candle_core::Device;
 use serde::{Deserialize, Serialize};
 
 use crate::field::saved;
-use crate::preset::Preset;
 use crate::render::render_image;
 use crate::stages::camera_paths::interpolated_path;
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::views::{RenderedViews, ViewInfo, ViewKind};
 use crate::{EngineError, Result};
+use stylenerf_plan::Preset;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RenderViewsConfig {

@@ -13,6 +13,17 @@ const STAGES: [pb::Stage; 5] = [
     pb::Stage::RenderStylized,
 ];
 
+/// The stages whose outputs a stage reads (the catalogue's DAG, written out).
+fn reads(stage: pb::Stage) -> Vec<pb::Stage> {
+    match stage {
+        pb::Stage::NerfPretrain => vec![],
+        pb::Stage::RenderViews => vec![pb::Stage::NerfPretrain],
+        pb::Stage::DecoderPretrain => vec![pb::Stage::RenderViews],
+        pb::Stage::MutualLearning => STAGES[..3].to_vec(),
+        _ => STAGES[..4].to_vec(),
+    }
+}
+
 #[tokio::test]
 async fn job_runs_through_all_stages_and_renders_again() {
     let dir = tempfile::tempdir().unwrap();
@@ -40,7 +51,12 @@ async fn job_runs_through_all_stages_and_renders_again() {
         let task = worker.run_one().await;
         assert_eq!(task.stage(), *stage, "stage {i} in DAG order");
         assert_eq!(task.attempt, 1);
-        assert_eq!(task.inputs.len(), i, "upstream outputs handed over");
+        let handed: Vec<pb::Stage> = task.inputs.iter().map(|i| i.stage()).collect();
+        assert_eq!(
+            handed,
+            reads(*stage),
+            "the outputs of the stages {stage:?} reads"
+        );
         assert_eq!(task.style_keys.len(), 2);
         assert!(task.object_store_url.starts_with("file://"));
         let config: serde_json::Value = serde_json::from_str(&task.config_json).unwrap();
@@ -50,6 +66,15 @@ async fn job_runs_through_all_stages_and_renders_again() {
 
     let done = get_job(&mut client, &job.id).await;
     assert_eq!(done.state(), pb::JobState::Succeeded);
+    // Each task depends on the tasks of the stages it reads.
+    for task in &done.tasks {
+        let deps: Vec<pb::Stage> = task
+            .depends_on
+            .iter()
+            .map(|id| done.tasks.iter().find(|t| t.id == *id).unwrap().stage())
+            .collect();
+        assert_eq!(deps, reads(task.stage()), "{:?}", task.stage());
+    }
     assert!(done
         .tasks
         .iter()
