@@ -19,7 +19,9 @@
 pub mod archive;
 pub mod config;
 pub mod connection;
+pub mod context;
 pub mod error;
+pub mod events;
 pub mod logging;
 pub mod progress;
 pub mod retry;
@@ -32,8 +34,9 @@ pub mod worker;
 
 pub use config::{WorkerArgs, WorkerConfig};
 pub use error::TaskError;
-pub use task::{TaskResult, MANIFEST};
-pub use worker::{RunSummary, Worker, WorkerEvent, WorkerHandle};
+pub use events::{TaskResult, WorkerEvent};
+pub use task::MANIFEST;
+pub use worker::{RunSummary, Worker, WorkerHandle};
 
 /// Runs a worker until SIGINT/SIGTERM (a second signal exits at once); what `stylenerf worker`
 /// and `stylenerf-worker` do.

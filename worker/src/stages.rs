@@ -17,8 +17,8 @@ use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_plan::Stage;
 use stylenerf_proto::v1 as pb;
 
+use crate::context::{Metrics, TaskContext};
 use crate::error::TaskError;
-use crate::task::{Metrics, TaskContext};
 
 /// The snake_case name of a protocol stage value (`nerf_pretrain`, …; `unspecified` for none).
 pub fn stage_name(stage: i32) -> &'static str {

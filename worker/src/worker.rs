@@ -15,30 +15,11 @@ use tokio::task::JoinSet;
 
 use crate::config::WorkerConfig;
 use crate::connection::Clients;
+use crate::context::RunSettings;
+use crate::events::{TaskResult, WorkerEvent};
 use crate::retry;
 use crate::scratch::ScratchDir;
-use crate::task::{start_task, RunSettings, StopReason, TaskResult, TaskStop};
-
-/// What a worker did, for logs, tests and embedding programs.
-#[derive(Debug, Clone, PartialEq)]
-pub enum WorkerEvent {
-    /// A task's inputs and checkpoint are in place and its stage starts.
-    TaskStarted {
-        task_id: u64,
-        job_id: String,
-        stage: pb::Stage,
-        attempt: u32,
-        /// Checkpoint step the stage resumes from (0 = fresh start).
-        resumed_from: u64,
-    },
-    /// A task ended.
-    TaskFinished {
-        task_id: u64,
-        job_id: String,
-        stage: pb::Stage,
-        result: TaskResult,
-    },
-}
+use crate::task::{start_task, StopReason, TaskStop};
 
 /// Controls a running [`Worker`] from elsewhere: shut it down, watch its events.
 #[derive(Clone)]

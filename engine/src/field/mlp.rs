@@ -9,16 +9,13 @@
 //!
 //! Parameter layout, layer after layer: weight [in, out] row-major, then bias [out].
 
-use std::collections::HashMap;
-use std::path::Path;
-
 use candle_core::{
     CpuStorage, CustomOp2, CustomOp3, DType, Device, Layout, Shape, Tensor, Var, WithDType,
 };
 
 use crate::cpu_ops::{contiguous_slice, matmul};
 use crate::rng::Rng;
-use crate::{EngineError, Result};
+use crate::Result;
 
 pub struct Mlp {
     name: String,
@@ -91,31 +88,6 @@ pub fn forward_composed(widths: &[usize], x: &Tensor, params: &Tensor) -> Result
         }
     }
     Ok(h)
-}
-
-/// Copies named tensors into the matching variables, checking shapes.
-pub fn load_vars(
-    vars: &[(String, Var)],
-    tensors: &HashMap<String, Tensor>,
-    source: &Path,
-) -> Result<()> {
-    for (name, var) in vars {
-        let t = tensors
-            .get(name)
-            .ok_or_else(|| EngineError::artifact(source, format!("tensor `{name}` missing")))?;
-        if t.dims() != var.dims() {
-            return Err(EngineError::artifact(
-                source,
-                format!(
-                    "tensor `{name}` has shape {:?}, the model expects {:?}",
-                    t.dims(),
-                    var.dims()
-                ),
-            ));
-        }
-        var.set(&t.to_dtype(var.dtype())?.to_device(var.device())?)?;
-    }
-    Ok(())
 }
 
 /// Layer outputs after bias (and ReLU for hidden layers), input first.

@@ -13,11 +13,12 @@ use candle_core::{DType, Device, Tensor, Var};
 use serde::{Deserialize, Serialize};
 
 use crate::field::hash_grid::{self, HashGrid, HashGridConfig};
-use crate::field::mlp::{load_vars, Mlp};
+use crate::field::mlp::Mlp;
 use crate::field::occupancy::OccupancyGrid;
 use crate::field::sh::sh16;
 use crate::field::space::FieldSpace;
-use crate::render::march::Samples;
+use crate::named::{load_vars, tensors_of};
+use crate::rays::Samples;
 use crate::rng::Rng;
 use crate::scene::Background;
 use crate::{EngineError, Result};
@@ -310,11 +311,7 @@ impl RadianceField {
 
     /// All tensors that define the field, occupancy included (for checkpoints and outputs).
     pub fn tensors(&self) -> Result<Vec<(String, Tensor)>> {
-        let mut t: Vec<(String, Tensor)> = self
-            .vars()
-            .into_iter()
-            .map(|(n, v)| (n, v.as_tensor().clone()))
-            .collect();
+        let mut t = tensors_of(&self.vars());
         let occ = Tensor::from_slice(
             &self.occupancy.density,
             self.occupancy.density.len(),

@@ -11,8 +11,7 @@ use crate::camera::{Camera, Ndc};
 use crate::checkpoint::write_atomic;
 use crate::field::radiance::{FieldConfig, RadianceField};
 use crate::field::space::FieldSpace;
-use crate::render::march::RayBatch;
-use crate::render::SamplingConfig;
+use crate::rays::{RayBatch, SamplingConfig};
 use crate::rng::Rng;
 use crate::{EngineError, Result};
 

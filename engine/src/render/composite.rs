@@ -15,31 +15,8 @@ use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor, WithD
 use rayon::prelude::*;
 
 use crate::cpu_ops::contiguous_slice;
+use crate::rays::PackedRays;
 use crate::Result;
-
-/// Per-sample constants of a packed batch of rays.
-#[derive(Debug, Clone, Default)]
-pub struct PackedRays {
-    /// Ray r owns samples `offsets[r]..offsets[r+1]`; length R + 1.
-    pub offsets: Vec<u32>,
-    /// Step length of each sample (in the units σ is measured in).
-    pub deltas: Vec<f32>,
-    /// Value averaged into the depth output (z-depth in world units).
-    pub depths: Vec<f32>,
-    /// Field-space distance along the ray to the start of each sample's interval (the
-    /// distortion loss's coordinate; gaps where empty cells were skipped included).
-    pub distances: Vec<f32>,
-}
-
-impl PackedRays {
-    pub fn num_rays(&self) -> usize {
-        self.offsets.len() - 1
-    }
-
-    pub fn num_samples(&self) -> usize {
-        self.deltas.len()
-    }
-}
 
 /// Composites σ [S] and rgb [S, 3] into [R, 5] = (rgb, depth, opacity) per ray.
 pub fn composite(sigma: &Tensor, rgb: &Tensor, rays: &Arc<PackedRays>) -> Result<Tensor> {

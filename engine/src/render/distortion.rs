@@ -16,7 +16,7 @@
 
 use candle_core::Tensor;
 
-use crate::render::composite::PackedRays;
+use crate::rays::PackedRays;
 use crate::Result;
 
 /// Mean distortion loss over the rays of `rays` for densities `sigma` [S], differentiable in σ.

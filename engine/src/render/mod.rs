@@ -8,23 +8,13 @@ pub mod march;
 use std::sync::Arc;
 
 use candle_core::Tensor;
-use serde::{Deserialize, Serialize};
 
 use crate::field::radiance::{FieldSamples, RadianceField};
-use crate::render::composite::{composite, split_with_background, PackedRays};
-use crate::render::march::{early_stop_mask, march, RayBatch, Samples};
+use crate::rays::{DepthModel, PackedRays, RayBatch, Samples, SamplingConfig};
+use crate::render::composite::{composite, split_with_background};
+use crate::render::march::{early_stop_mask, march};
 use crate::rng::Rng;
 use crate::Result;
-
-/// Sampling settings shared by training and rendering.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct SamplingConfig {
-    /// Steps across the scene box's diagonal (world scenes) or across the NDC depth range.
-    pub steps_per_diagonal: usize,
-    pub max_samples_per_ray: usize,
-    /// Samples after the transmittance falls below this are skipped.
-    pub early_stop_eps: f32,
-}
 
 /// Rendered rays.
 pub struct RenderOutput {
@@ -50,7 +40,7 @@ pub fn step_size(field: &RadianceField, rays: &RayBatch, cfg: &SamplingConfig) -
     let span = if rays
         .depth
         .first()
-        .is_some_and(|d| matches!(d, march::DepthModel::Ndc { .. }))
+        .is_some_and(|d| matches!(d, DepthModel::Ndc { .. }))
     {
         rays.far - rays.near
     } else {

@@ -23,17 +23,17 @@
 
 use std::collections::HashMap;
 use std::path::Path;
-use std::time::Instant;
 
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
-use crate::checkpoint::{write_json_atomic, CheckpointDir};
+use crate::checkpoint::write_json_atomic;
 use crate::curves::{self, Series, Term};
 use crate::optim::{Adam, AdamConfig};
 use crate::rng::Rng;
+use crate::stages::training::Training;
 use crate::stages::window::Window;
-use crate::stages::{Outcome, Progress, StageControl};
+use crate::stages::{Outcome, StageControl};
 use crate::style2d::arch::VggArch;
 use crate::style2d::decoder::Decoder;
 use crate::style2d::encoder::VggEncoder;
@@ -46,7 +46,7 @@ use crate::style2d::weights::EncoderWeights;
 use crate::views::RenderedViews;
 use crate::warp::{Warp, WarpConfig};
 use crate::{EngineError, Result};
-use stylenerf_plan::Preset;
+use stylenerf_plan::{Preset, Stage};
 
 /// Configuration of the stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -188,13 +188,12 @@ pub struct DecoderPretrainReport {
     pub vae_reconstruction: f32,
 }
 
+/// What a checkpoint holds besides the weights and the optimiser's moments.
 #[derive(Serialize, Deserialize)]
-struct CheckpointMeta {
-    step: u64,
+struct TrainingState {
     rng: Rng,
     config: DecoderPretrainConfig,
     loss_log: Vec<LossRecord>,
-    train_seconds: f64,
 }
 
 /// The views cropped (top-left) to multiples of the encoder's stride.
@@ -418,32 +417,29 @@ pub fn run(
     let (width, height) = (views.width as usize, views.height as usize);
 
     let mut adam = Adam::new(net.decoder.vars(), AdamConfig::default())?;
-    let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
-    let mut rng = Rng::new(cfg.seed);
-    let (mut start, mut loss_log, mut seconds_before) = (0, Vec::new(), 0.0);
+    let mut training = Training::new(Stage::DecoderPretrain, out, cfg.steps, control);
+    let mut state = TrainingState {
+        rng: Rng::new(cfg.seed),
+        config: cfg.clone(),
+        loss_log: Vec::new(),
+    };
     let switch = (cfg.steps as f64 * cfg.consistency_from).round() as u64;
     // The plain-AdaIN decoder, copied when L_co switches on (checkpointed from then on).
     let mut adain_weights: Option<HashMap<String, Tensor>> = None;
-    if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
-        net.decoder.set_tensors(&c.tensors)?;
-        let saved: HashMap<String, Tensor> = c
+    if let Some(resumed) = training.resume::<TrainingState>(device)? {
+        net.decoder
+            .load_tensors(&resumed.tensors, &resumed.source)?;
+        let saved: HashMap<String, Tensor> = resumed
             .tensors
             .iter()
             .filter_map(|(k, t)| Some((k.strip_prefix(ADAIN_PREFIX)?.to_string(), t.clone())))
             .collect();
         adain_weights = (!saved.is_empty()).then_some(saved);
-        adam.load_state(&c.tensors, c.meta.step)?;
-        (start, rng, loss_log, seconds_before) = (
-            c.meta.step,
-            c.meta.rng,
-            c.meta.loss_log,
-            c.meta.train_seconds,
-        );
-        tracing::info!(step = start, "decoder_pretrain: resuming from checkpoint");
+        adam.load_state(&resumed.tensors, training.start())?;
+        state = resumed.state;
     }
-    let started = Instant::now();
-    let mut last_ckpt = Instant::now();
-    for step in start..cfg.steps {
+    for step in training.steps() {
+        let rng = &mut state.rng;
         let consistency_on = step >= switch;
         if consistency_on && adain_weights.is_none() {
             adain_weights = Some(copy_weights(&net.decoder)?);
@@ -456,7 +452,7 @@ pub fn run(
         let s = rng.below(styles.len());
         let i = rng.below(views.len());
         let j = pairs[i][rng.below(pairs[i].len())];
-        let wi = Window::random(width, height, cfg.patch, &mut rng);
+        let wi = Window::random(width, height, cfg.patch, rng);
         let wj = wi.follow(
             &views.views[i].camera,
             &cache.depth(i),
@@ -473,22 +469,15 @@ pub fn run(
             style: ls.to_scalar()?,
             consistency: lco.to_scalar()?,
         };
-        loss_log.push(rec);
-        let mut p = Progress {
-            stage: "decoder_pretrain".into(),
-            step: done,
-            total: cfg.steps,
-            loss: Some(total.to_scalar::<f32>()? as f64),
-            resumed_from: start,
-            ..Default::default()
-        };
+        state.loss_log.push(rec);
+        let mut p = training.progress(done);
+        p.loss = Some(total.to_scalar::<f32>()? as f64);
         p.metrics.insert("content".into(), rec.content as f64);
         p.metrics.insert("style".into(), rec.style as f64);
         p.metrics
             .insert("consistency".into(), rec.consistency as f64);
         control.report(&p);
-        let stop = control.should_stop(done);
-        if done < cfg.steps && (stop || control.checkpoint_due(done, last_ckpt)) {
+        let stopped = training.after_step(done, || {
             let mut tensors = net.decoder.tensors();
             tensors.extend(adam.state());
             if let Some(w) = &adain_weights {
@@ -497,32 +486,23 @@ pub fn run(
                         .map(|(k, t)| (format!("{ADAIN_PREFIX}{k}"), t.clone())),
                 );
             }
-            let meta = CheckpointMeta {
-                step: done,
-                rng,
-                config: cfg.clone(),
-                loss_log: loss_log.clone(),
-                train_seconds: seconds_before + started.elapsed().as_secs_f64(),
-            };
-            ckpt.save(done, &tensors, &meta)?;
-            last_ckpt = Instant::now();
-        }
-        if stop && done < cfg.steps {
-            if control.is_cancelled() {
-                return Err(EngineError::Cancelled);
-            }
-            return Ok(Outcome::Stopped { step: done });
+            Ok((tensors, &state))
+        })?;
+        if let Some(stopped) = stopped {
+            return Ok(stopped);
         }
     }
-    let train_seconds = seconds_before + started.elapsed().as_secs_f64();
+    let TrainingState { loss_log, .. } = state;
+    let train_seconds = training.seconds();
     std::fs::create_dir_all(out.join("sheets")).map_err(|e| EngineError::io(out, e))?;
     net.decoder
         .save(&out.join("decoder.safetensors"), net.encoder.source())?;
     let adain_decoder = Decoder::new(encoder.arch, cfg.seed, device)?;
-    adain_decoder.set_tensors(&match adain_weights {
+    let adain_weights = match adain_weights {
         Some(w) => w,
         None => copy_weights(&net.decoder)?,
-    })?;
+    };
+    adain_decoder.load_tensors(&adain_weights, &out.join("ckpt"))?;
     adain_decoder.save(&out.join("adain_decoder.safetensors"), net.encoder.source())?;
 
     // Evaluation: every `eval_stride`-th view with its nearest neighbour, every style.
@@ -587,7 +567,7 @@ pub fn run(
     write_json_atomic(&out.join("styles.json"), &styles_file)?;
     let report = DecoderPretrainReport {
         steps: cfg.steps,
-        resumed_from: start,
+        resumed_from: training.start(),
         train_seconds,
         loss_log,
         consistency_mse: co / n,

@@ -14,4 +14,5 @@ pub mod mutual_learning;
 pub mod nerf_pretrain;
 pub mod render_stylized;
 pub mod render_views;
+pub mod training;
 pub mod window;

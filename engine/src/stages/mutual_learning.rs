@@ -19,17 +19,18 @@
 
 use std::collections::HashMap;
 use std::path::Path;
-use std::time::Instant;
 
 use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
-use crate::checkpoint::{write_json_atomic, CheckpointDir};
+use crate::checkpoint::write_json_atomic;
 use crate::curves::{self, Series, Term};
 use crate::field::saved;
+use crate::named::{load_vars, tensors_of};
 use crate::optim::{Adam, AdamConfig};
 use crate::rng::Rng;
 use crate::stages::decoder_pretrain::{crop_views, StylesFile};
+use crate::stages::training::Training;
 use crate::stages::window::Window;
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::style2d::adain::adain;
@@ -45,7 +46,7 @@ use crate::stylized::style_module::{StyleModule, StyleModuleConfig};
 use crate::stylized::surface::SurfaceSamples;
 use crate::views::RenderedViews;
 use crate::{EngineError, Result};
-use stylenerf_plan::Preset;
+use stylenerf_plan::{Preset, Stage};
 
 /// Configuration of the stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -167,13 +168,12 @@ pub struct LatentsFile {
     pub num_views: usize,
 }
 
+/// What a checkpoint holds besides the weights and the optimisers' moments.
 #[derive(Serialize, Deserialize)]
-struct CheckpointMeta {
-    step: u64,
+struct TrainingState {
     rng: Rng,
     config: MutualConfig,
     loss_log: Vec<MutualRecord>,
-    train_seconds: f64,
     /// Steps the decoder's optimiser has taken (it starts after the freeze).
     decoder_steps: u64,
 }
@@ -352,25 +352,19 @@ pub fn run(
     let mut adam_dec = Adam::new(net.decoder.vars(), AdamConfig::default())?;
     let decoder_start = flat_weights(&net.decoder)?;
 
-    let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
-    let (mut start, mut loss_log, mut seconds_before) = (0, Vec::new(), 0.0);
-    if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
-        crate::field::mlp::load_vars(&module.vars(), &c.tensors, ckpt.path())?;
-        let codes = c
-            .tensors
+    let mut training = Training::new(Stage::MutualLearning, out, cfg.steps, control);
+    let mut loss_log = Vec::new();
+    if let Some(resumed) = training.resume::<TrainingState>(device)? {
+        let (tensors, source) = (&resumed.tensors, &resumed.source);
+        load_vars(&module.vars(), tensors, source)?;
+        let codes = tensors
             .get("latents.codes")
-            .ok_or_else(|| EngineError::artifact(ckpt.path(), "checkpoint has no latent codes"))?;
+            .ok_or_else(|| EngineError::artifact(source, "checkpoint has no latent codes"))?;
         latents.set_codes(codes)?;
-        net.decoder.set_tensors(&c.tensors)?;
-        adam_nerf.load_state(&c.tensors, c.meta.step)?;
-        adam_dec.load_state(&c.tensors, c.meta.decoder_steps)?;
-        (start, rng, loss_log, seconds_before) = (
-            c.meta.step,
-            c.meta.rng,
-            c.meta.loss_log,
-            c.meta.train_seconds,
-        );
-        tracing::info!(step = start, "mutual_learning: resuming from checkpoint");
+        net.decoder.load_tensors(tensors, source)?;
+        adam_nerf.load_state(tensors, training.start())?;
+        adam_dec.load_state(tensors, resumed.state.decoder_steps)?;
+        (rng, loss_log) = (resumed.state.rng, resumed.state.loss_log);
     }
     let freeze_until = if cfg.finetune_decoder {
         (cfg.steps as f64 * cfg.decoder_freeze).round() as u64
@@ -379,9 +373,7 @@ pub fn run(
     };
     // Frozen-decoder outputs per (view, style), as pixel rows [H·W, 3].
     let mut frozen: HashMap<(usize, usize), Tensor> = HashMap::new();
-    let started = Instant::now();
-    let mut last_ckpt = Instant::now();
-    for step in start..cfg.steps {
+    for step in training.steps() {
         let (v, s) = (rng.below(n_views), rng.below(n_styles));
         let window = Window::random(data.width(), data.height(), cfg.patch, &mut rng);
         let pixels = window.pixels(data.width());
@@ -481,14 +473,8 @@ pub fn run(
         }
         let done = step + 1;
         loss_log.push(rec);
-        let mut p = Progress {
-            stage: "mutual_learning".into(),
-            step: done,
-            total: cfg.steps,
-            loss: Some(rec.mimic as f64),
-            resumed_from: start,
-            ..Default::default()
-        };
+        let mut p = training.progress(done);
+        p.loss = Some(rec.mimic as f64);
         p.metrics.insert("mimic".into(), rec.mimic as f64);
         p.metrics.insert("latent_nll".into(), rec.latent_nll as f64);
         if train_decoder {
@@ -496,36 +482,25 @@ pub fn run(
             p.metrics.insert("content".into(), rec.content as f64);
         }
         control.report(&p);
-        let stop = control.should_stop(done);
-        if done < cfg.steps && (stop || control.checkpoint_due(done, last_ckpt)) {
-            let mut tensors: Vec<(String, Tensor)> = module
-                .vars()
-                .into_iter()
-                .map(|(n, v)| (n, v.as_tensor().clone()))
-                .collect();
+        let stopped = training.after_step(done, || {
+            let mut tensors = tensors_of(&module.vars());
             tensors.push(("latents.codes".into(), latents.codes().clone()));
             tensors.extend(net.decoder.tensors());
             tensors.extend(adam_nerf.state());
             tensors.extend(adam_dec.state());
-            let meta = CheckpointMeta {
-                step: done,
+            let state = TrainingState {
                 rng,
                 config: cfg.clone(),
                 loss_log: loss_log.clone(),
-                train_seconds: seconds_before + started.elapsed().as_secs_f64(),
                 decoder_steps: adam_dec.step_count(),
             };
-            ckpt.save(done, &tensors, &meta)?;
-            last_ckpt = Instant::now();
-        }
-        if stop && done < cfg.steps {
-            if control.is_cancelled() {
-                return Err(EngineError::Cancelled);
-            }
-            return Ok(Outcome::Stopped { step: done });
+            Ok((tensors, state))
+        })?;
+        if let Some(stopped) = stopped {
+            return Ok(stopped);
         }
     }
-    let train_seconds = seconds_before + started.elapsed().as_secs_f64();
+    let train_seconds = training.seconds();
 
     std::fs::create_dir_all(out).map_err(|e| EngineError::io(out, e))?;
     module.save(&out.join("style_module.safetensors"))?;
@@ -542,7 +517,7 @@ pub fn run(
     let decoder_end = flat_weights(&net.decoder)?;
     let report = MutualReport {
         steps: cfg.steps,
-        resumed_from: start,
+        resumed_from: training.start(),
         train_seconds,
         mimic_start: mean(&loss_log[..tenth.min(loss_log.len())]),
         mimic_end: mean(&loss_log[loss_log.len().saturating_sub(tenth)..]),

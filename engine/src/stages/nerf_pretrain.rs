@@ -7,26 +7,26 @@
 //! `test/<name>.png` (renders of the test views), `ckpt/` (checkpoints).
 
 use std::path::Path;
-use std::time::Instant;
 
 use candle_core::Device;
 use serde::{Deserialize, Serialize};
 
-use crate::checkpoint::{write_atomic, CheckpointDir};
+use crate::checkpoint::write_atomic;
 use crate::curves::{self, Series};
 use crate::field::hash_grid::HashGridConfig;
 use crate::field::radiance::{FieldConfig, RadianceField};
 use crate::field::saved::{self, FieldMeta};
 use crate::field::space::FieldSpace;
 use crate::optim::{Adam, AdamConfig, LrSchedule};
+use crate::rays::{RayBatch, SamplingConfig};
 use crate::render::distortion::distortion_loss;
-use crate::render::march::RayBatch;
-use crate::render::{render_image, render_rays, step_size, SamplingConfig};
+use crate::render::{render_image, render_rays, step_size};
 use crate::rng::Rng;
 use crate::scene::{Background, LoadOptions, Scene};
+use crate::stages::training::Training;
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::{EngineError, Result};
-use stylenerf_plan::Preset;
+use stylenerf_plan::{Preset, Stage};
 
 /// Training configuration of the field.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -197,14 +197,13 @@ pub struct NerfReport {
     pub psnr_curve: Vec<(u64, f64, f64)>,
 }
 
+/// What a checkpoint holds besides the weights and the optimiser's moments.
 #[derive(Serialize, Deserialize)]
-struct CheckpointMeta {
-    step: u64,
+struct TrainingState {
     rng: Rng,
     config: NerfConfig,
     loss_log: Vec<(u64, f32)>,
     psnr_curve: Vec<(u64, f64, f64)>,
-    train_seconds: f64,
     samples: u64,
     rays: u64,
     batch_rays: usize,
@@ -286,41 +285,35 @@ pub fn run(
         final_ratio: cfg.lr_final_ratio,
         total_steps: cfg.steps,
     };
-    let ckpt = CheckpointDir::new(out.join("ckpt"), 2);
-    let mut batch_rays = cfg.rays_per_batch;
-    let mut start = 0;
-    let mut loss_log = Vec::new();
-    let mut psnr_curve = Vec::new();
-    let mut samples_total = 0u64;
-    let mut rays_total = 0u64;
-    let mut seconds_before = 0.0;
-    if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
-        let source = ckpt.path().join(format!("step-{:08}.safetensors", c.step));
-        field.load_tensors(&c.tensors, &source, threshold)?;
-        adam.load_state(&c.tensors, c.meta.step)?;
-        rng = c.meta.rng;
-        start = c.meta.step;
-        loss_log = c.meta.loss_log;
-        psnr_curve = c.meta.psnr_curve;
-        samples_total = c.meta.samples;
-        rays_total = c.meta.rays;
-        batch_rays = c.meta.batch_rays;
-        seconds_before = c.meta.train_seconds;
-        tracing::info!(step = start, "nerf_pretrain: resuming from checkpoint");
+    let mut training = Training::new(Stage::NerfPretrain, out, cfg.steps, control);
+    let mut state = TrainingState {
+        rng,
+        config: cfg.clone(),
+        loss_log: Vec::new(),
+        psnr_curve: Vec::new(),
+        samples: 0,
+        rays: 0,
+        batch_rays: cfg.rays_per_batch,
+    };
+    if let Some(resumed) = training.resume::<TrainingState>(device)? {
+        field.load_tensors(&resumed.tensors, &resumed.source, threshold)?;
+        adam.load_state(&resumed.tensors, training.start())?;
+        state = resumed.state;
     }
-    // Training time excludes the time spent on mid-training evaluations.
-    let mut started = Instant::now();
-    let mut last_ckpt = Instant::now();
-    for step in start..cfg.steps {
+    let learned = scene.background == Background::Learned;
+    for step in training.steps() {
+        let rng = &mut state.rng;
         if step >= cfg.occupancy_warmup && step % cfg.occupancy_every == 0 {
             let cells = if step < cfg.occupancy_full_until {
                 usize::MAX
             } else {
                 cfg.field.occupancy_resolution.pow(3) / 4
             };
-            field.update_occupancy(&mut rng, cells, threshold)?;
+            field.update_occupancy(rng, cells, threshold)?;
         }
-        let idx: Vec<usize> = (0..batch_rays).map(|_| rng.below(rays.len())).collect();
+        let idx: Vec<usize> = (0..state.batch_rays)
+            .map(|_| rng.below(rays.len()))
+            .collect();
         let batch = rays.select(&idx);
         let target: Vec<f32> = idx
             .iter()
@@ -332,11 +325,10 @@ pub fn run(
             &batch,
             &cfg.sampling,
             &|s| field.colour(s),
-            Some(&mut rng),
+            Some(rng),
         )?;
         let mse = (out.rgb - target)?.sqr()?.mean_all()?;
         let mut loss = mse.clone();
-        let learned = scene.background == Background::Learned;
         if learned && cfg.opacity_entropy > 0.0 {
             loss = (loss + (opacity_entropy(&out.opacity)? * cfg.opacity_entropy)?)?;
         }
@@ -345,31 +337,24 @@ pub fn run(
         }
         let grads = loss.backward()?;
         adam.step(&grads, schedule.at(step))?;
-        samples_total += out.num_samples as u64;
-        rays_total += idx.len() as u64;
-        batch_rays = adapt_batch(batch_rays, out.num_samples, cfg);
+        state.samples += out.num_samples as u64;
+        state.rays += idx.len() as u64;
+        state.batch_rays = adapt_batch(state.batch_rays, out.num_samples, cfg);
         let done = step + 1;
         if cfg.eval_every > 0 && done % cfg.eval_every == 0 && done < cfg.steps {
-            let seconds = seconds_before + started.elapsed().as_secs_f64();
-            let eval_started = Instant::now();
-            let eval = evaluate(scene, &field, &field_meta(scene, cfg, threshold), cfg, None)?;
+            let seconds = training.seconds();
+            let meta = field_meta(scene, cfg, threshold);
+            let eval = training.untimed(|| evaluate(scene, &field, &meta, cfg, None))?;
             if let Some(psnr) = eval.psnr {
                 tracing::info!(step = done, seconds, psnr, "nerf_pretrain: test PSNR");
-                psnr_curve.push((done, seconds, psnr));
+                state.psnr_curve.push((done, seconds, psnr));
             }
-            started += eval_started.elapsed();
         }
         if done % 10 == 0 || done == cfg.steps {
             let l = mse.to_scalar::<f32>()?;
-            loss_log.push((done, l));
-            let mut p = Progress {
-                stage: "nerf_pretrain".into(),
-                step: done,
-                total: cfg.steps,
-                loss: Some(l as f64),
-                resumed_from: start,
-                ..Default::default()
-            };
+            state.loss_log.push((done, l));
+            let mut p = training.progress(done);
+            p.loss = Some(l as f64);
             p.metrics.insert("psnr".into(), -10.0 * (l as f64).log10());
             p.metrics.insert("lr".into(), schedule.at(step));
             p.metrics.insert(
@@ -383,32 +368,23 @@ pub fn run(
             );
             control.report(&p);
         }
-        let stop = control.should_stop(done);
-        if done < cfg.steps && (stop || control.checkpoint_due(done, last_ckpt)) {
+        let stopped = training.after_step(done, || {
             let mut tensors = field.tensors()?;
             tensors.extend(adam.state());
-            let meta = CheckpointMeta {
-                step: done,
-                rng,
-                config: cfg.clone(),
-                loss_log: loss_log.clone(),
-                psnr_curve: psnr_curve.clone(),
-                train_seconds: seconds_before + started.elapsed().as_secs_f64(),
-                samples: samples_total,
-                rays: rays_total,
-                batch_rays,
-            };
-            ckpt.save(done, &tensors, &meta)?;
-            last_ckpt = Instant::now();
-        }
-        if stop && done < cfg.steps {
-            if control.is_cancelled() {
-                return Err(EngineError::Cancelled);
-            }
-            return Ok(Outcome::Stopped { step: done });
+            Ok((tensors, &state))
+        })?;
+        if let Some(stopped) = stopped {
+            return Ok(stopped);
         }
     }
-    let train_seconds = seconds_before + started.elapsed().as_secs_f64();
+    let TrainingState {
+        samples: samples_total,
+        rays: rays_total,
+        loss_log,
+        mut psnr_curve,
+        ..
+    } = state;
+    let train_seconds = training.seconds();
     let meta = field_meta(scene, cfg, threshold);
     let eval = evaluate(scene, &field, &meta, cfg, Some(&out.join("test")))?;
     let (test_psnr, depth) = (eval.psnr, eval.depth_mae);
@@ -418,7 +394,7 @@ pub fn run(
     let extent = field.space.content_extent() as f64;
     let report = NerfReport {
         steps: cfg.steps,
-        resumed_from: start,
+        resumed_from: training.start(),
         test_psnr,
         depth_mae: depth,
         depth_mae_relative: depth.map(|d| d / extent),
@@ -449,15 +425,11 @@ pub fn run(
         .map_err(|e| EngineError::artifact(out, e.to_string()))?;
     write_atomic(&out.join("metrics.json"), &json)?;
     control.report(&Progress {
-        stage: "nerf_pretrain".into(),
-        step: cfg.steps,
-        total: cfg.steps,
         metrics: test_psnr
             .map(|p| ("test_psnr".to_string(), p))
             .into_iter()
             .collect(),
-        resumed_from: start,
-        ..Default::default()
+        ..training.progress(cfg.steps)
     });
     Ok(Outcome::Done(report))
 }

@@ -232,7 +232,7 @@ pub fn train(
     let mut rng = Rng::new(cfg.seed);
     let (mut start, mut log, mut seconds_before) = (0, Vec::new(), 0.0);
     if let Some(c) = ckpt.latest::<CheckpointMeta>(device)? {
-        net.decoder.set_tensors(&c.tensors)?;
+        net.decoder.load_tensors(&c.tensors, ckpt.path())?;
         adam.load_state(&c.tensors, c.meta.step)?;
         (start, rng, log, seconds_before) = (c.meta.step, c.meta.rng, c.meta.log, c.meta.seconds);
         tracing::info!(step = start, "train-decoder: resuming from checkpoint");

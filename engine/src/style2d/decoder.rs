@@ -19,6 +19,7 @@ use super::pad::reflection_pad2d;
 use super::resample::upsample_nearest2x;
 use super::st_file;
 use super::weights::{legacy_pickle_error, read_state_dict, take_conv};
+use crate::named::{load_vars, tensors_of};
 use crate::rng::Rng;
 use crate::{EngineError, Result};
 
@@ -126,31 +127,13 @@ impl Decoder {
 
     /// The weights as named tensors (for checkpoints).
     pub fn tensors(&self) -> Vec<(String, Tensor)> {
-        self.vars()
-            .into_iter()
-            .map(|(n, v)| (n, v.as_tensor().clone()))
-            .collect()
+        tensors_of(&self.vars())
     }
 
-    /// Overwrites the weights from named tensors as produced by [`Self::tensors`].
-    pub fn set_tensors(&self, tensors: &HashMap<String, Tensor>) -> Result<()> {
-        for (name, var) in self.vars() {
-            let t = tensors.get(&name).ok_or_else(|| {
-                EngineError::artifact("decoder", format!("missing tensor `{name}`"))
-            })?;
-            if t.dims() != var.dims() {
-                return Err(EngineError::artifact(
-                    "decoder",
-                    format!(
-                        "tensor `{name}`: expected shape {:?}, found {:?}",
-                        var.dims(),
-                        t.dims()
-                    ),
-                ));
-            }
-            var.set(&t.to_dtype(DType::F32)?.to_device(var.device())?)?;
-        }
-        Ok(())
+    /// Overwrites the weights from named tensors as produced by [`Self::tensors`] (read from
+    /// `source`).
+    pub fn load_tensors(&self, tensors: &HashMap<String, Tensor>, source: &Path) -> Result<()> {
+        load_vars(&self.vars(), tensors, source)
     }
 
     /// Saves the decoder as safetensors (f32); `encoder` names the encoder it was trained
@@ -212,8 +195,7 @@ impl Decoder {
             .ok_or_else(|| EngineError::artifact(path, "decoder metadata lacks a valid `arch`"))?;
         let dec = Self::new(arch, 0, device)?;
         let tensors = candle_core::safetensors::load_buffer(&bytes, device)?;
-        dec.set_tensors(&tensors)
-            .map_err(|e| EngineError::artifact(path, e.to_string()))?;
+        dec.load_tensors(&tensors, path)?;
         Ok((dec, meta.get("encoder").cloned()))
     }
 }

@@ -20,6 +20,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use serde::{Deserialize, Serialize};
 
 use super::st_file;
+use crate::named::{load_vars, tensors_of};
 use crate::optim::{Adam, AdamConfig};
 use crate::rng::Rng;
 use crate::{EngineError, Result};
@@ -163,31 +164,20 @@ impl StyleVae {
 
     /// All tensors including the standardisation.
     pub fn tensors(&self) -> Vec<(String, Tensor)> {
-        let mut t: Vec<(String, Tensor)> = self
-            .vars()
-            .into_iter()
-            .map(|(n, v)| (n, v.as_tensor().clone()))
-            .collect();
-        t.push(("vae.input_mean".into(), self.input_mean.as_tensor().clone()));
-        t.push(("vae.input_std".into(), self.input_std.as_tensor().clone()));
-        t
+        tensors_of(&self.all_vars())
     }
 
-    /// Restores tensors produced by [`Self::tensors`].
-    pub fn set_tensors(&self, tensors: &HashMap<String, Tensor>) -> Result<()> {
-        let mut all: Vec<(String, Var)> = self.vars();
+    /// The variables and the standardisation.
+    fn all_vars(&self) -> Vec<(String, Var)> {
+        let mut all = self.vars();
         all.push(("vae.input_mean".into(), self.input_mean.clone()));
         all.push(("vae.input_std".into(), self.input_std.clone()));
-        for (name, var) in all {
-            let t = tensors
-                .get(&name)
-                .filter(|t| t.dims() == var.dims())
-                .ok_or_else(|| {
-                    EngineError::artifact("vae", format!("missing or misshapen tensor `{name}`"))
-                })?;
-            var.set(&t.to_dtype(DType::F32)?.to_device(var.device())?)?;
-        }
-        Ok(())
+        all
+    }
+
+    /// Restores tensors produced by [`Self::tensors`] (read from `source`).
+    pub fn load_tensors(&self, tensors: &HashMap<String, Tensor>, source: &Path) -> Result<()> {
+        load_vars(&self.all_vars(), tensors, source)
     }
 
     /// The training loss on a batch `[N, input]`; `noise` `[N, latent]` is ε ~ N(0, I) for
@@ -274,8 +264,7 @@ impl StyleVae {
             })?;
         let vae = Self::new(config, 0, device)?;
         let tensors = candle_core::safetensors::load_buffer(&bytes, device)?;
-        vae.set_tensors(&tensors)
-            .map_err(|e| EngineError::artifact(path, e.to_string()))?;
+        vae.load_tensors(&tensors, path)?;
         Ok(vae)
     }
 }
@@ -403,7 +392,7 @@ mod tests {
                 Tensor::zeros(2, DType::F32, &dev).unwrap(),
             );
         }
-        vae.set_tensors(&t).unwrap();
+        vae.load_tensors(&t, Path::new("test")).unwrap();
         let d = vae
             .style_distribution(&m(&[0., 0., 1., 0.], (2, 2)))
             .unwrap();

@@ -19,7 +19,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use serde::{Deserialize, Serialize};
 
 use super::surface::SurfaceBatch;
-use crate::field::mlp::{load_vars, Mlp};
+use crate::field::mlp::Mlp;
+use crate::named::load_vars;
 use crate::rng::Rng;
 use crate::style2d::st_file;
 use crate::{EngineError, Result};
