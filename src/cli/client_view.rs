@@ -9,7 +9,7 @@
 //! they took in the caller's newest succeeded job of the same preset ([`StageTimes`]); with
 //! no such job, none is shown.
 
-use super::client::{describe_progress, duration, now_ms};
+use super::client_format::{describe_progress, duration, now_ms};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::collections::HashMap;
 use std::io::IsTerminal;

@@ -23,7 +23,8 @@ use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_server::{Coordinator, CoordinatorConfig};
 use stylenerf_worker::{Worker, WorkerConfig};
 
-use super::client::{follow, parse_overrides};
+use super::client::follow;
+use super::client_args::parse_overrides;
 use super::coordinator::shutdown_signal;
 
 /// Options of `stylenerf demo`.

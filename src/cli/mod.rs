@@ -9,6 +9,8 @@ mod bench_nerf;
 mod bench_uploads;
 mod bench_vgg;
 mod client;
+mod client_args;
+mod client_format;
 mod client_view;
 mod common;
 mod coordinator;
@@ -74,7 +76,7 @@ pub enum Command {
     /// Run a worker: lease stage tasks from a coordinator and train them (CPU or CUDA).
     Worker(Box<worker::WorkerCommand>),
     #[command(flatten)]
-    Client(client::ClientCommand),
+    Client(client_args::ClientCommand),
     /// Print a shell completion script: `stylenerf completions bash > ~/.local/share/bash-completion/completions/stylenerf`.
     Completions {
         /// bash, zsh, fish, elvish or powershell
