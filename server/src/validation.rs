@@ -334,56 +334,18 @@ fn check_poses_bounds(
     members: &HashSet<String>,
     limits: &Limits,
 ) -> Result<usize, String> {
-    if content.len() < 10 || &content[..6] != b"\x93NUMPY" {
-        return Err("not a .npy file".into());
-    }
-    let (header_start, header_len) = match content[6] {
-        1 => (10, u16::from_le_bytes([content[8], content[9]]) as usize),
-        2 | 3 if content.len() >= 12 => (
-            12,
-            u32::from_le_bytes([content[8], content[9], content[10], content[11]]) as usize,
-        ),
-        v => return Err(format!("unsupported .npy version {v}")),
-    };
-    let header = content
-        .get(header_start..header_start + header_len)
-        .and_then(|h| std::str::from_utf8(h).ok())
-        .ok_or("truncated .npy header")?;
-    let item_size = if header.contains("'<f8'") {
-        8
-    } else if header.contains("'<f4'") {
-        4
-    } else {
-        return Err("dtype must be little-endian float32 or float64".into());
-    };
-    if header.contains("'fortran_order': True") {
-        return Err("Fortran-ordered arrays are not supported".into());
-    }
-    let shape = header
-        .split("'shape':")
-        .nth(1)
-        .and_then(|s| s.split(')').next())
-        .map(|s| s.trim().trim_start_matches('(').to_string())
-        .ok_or("no shape in the .npy header")?;
-    let dims: Vec<usize> = shape
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| format!("bad shape ({shape})"))?;
-    let n = match dims.as_slice() {
-        [n, 17] if *n > 0 => *n,
-        _ => return Err(format!("shape must be (N, 17), not ({shape})")),
+    // The engine's own parser: what it refuses, the upload is refused for.
+    let matrix = stylenerf_plan::npy::parse_matrix(content)
+        .map_err(|e| format!("{}: {}", e.field, e.reason))?;
+    let n = match (matrix.rows, matrix.cols) {
+        (n, 17) if n > 0 => n,
+        (rows, cols) => return Err(format!("shape must be (N, 17), not ({rows}, {cols})")),
     };
     if n as u64 > limits.max_frames {
         return Err(format!(
             "{n} poses, more than the limit of {}",
             limits.max_frames
         ));
-    }
-    if content.len() < header_start + header_len + n * 17 * item_size {
-        return Err("truncated .npy data".into());
     }
     let images_dir = if dir.is_empty() {
         "images/".to_string()
@@ -527,6 +489,26 @@ mod tests {
         );
         let short = archive(&[("poses_bounds.npy", &npy), ("images/a.jpg", b"x")]);
         assert!(validate_dataset_archive(&short[..], &Limits::default()).is_err());
+        // Refused as the worker's reader would refuse it: data beyond the shape, a wrong shape.
+        let mut long = npy.clone();
+        long.extend_from_slice(&[0u8; 8]);
+        let e = validate_dataset_archive(
+            &archive(&[("poses_bounds.npy", &long), ("images/a.jpg", b"x")])[..],
+            &Limits::default(),
+        )
+        .unwrap_err();
+        assert!(e.contains("data") && e.contains("bytes"), "{e}");
+        let header = "{'descr': '<f8', 'fortran_order': False, 'shape': (2, 16), }";
+        let mut narrow = b"\x93NUMPY\x01\x00".to_vec();
+        narrow.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        narrow.extend_from_slice(header.as_bytes());
+        narrow.extend_from_slice(&[0u8; 2 * 16 * 8]);
+        let e = validate_dataset_archive(
+            &archive(&[("poses_bounds.npy", &narrow), ("images/a.jpg", b"x")])[..],
+            &Limits::default(),
+        )
+        .unwrap_err();
+        assert!(e.contains("(N, 17)") && e.contains("(2, 16)"), "{e}");
     }
 
     /// Whatever the bytes, validation answers with a summary or a printable reason, never a
