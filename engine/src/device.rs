@@ -1,30 +1,16 @@
-//! Compute devices by name: `cpu`, `cuda` or `cuda:N`, as given on command lines and advertised
-//! by workers.
+//! Compute devices by name: `cpu`, `cuda` or `cuda:N` (the names are parsed by
+//! [`stylenerf_plan::device`], shared with the coordinator), opened for candle.
 
 use candle_core::{Device, DeviceLocation};
+use stylenerf_plan::device::DeviceName;
 
 use crate::{EngineError, Result};
 
 /// Opens the device named `cpu`, `cuda` (first GPU) or `cuda:N`.
 pub fn parse_device(s: &str) -> Result<Device> {
-    let expected = "expected cpu, cuda or cuda:N";
-    if s == "cpu" {
-        return Ok(Device::Cpu);
-    }
-    let ordinal = match s.strip_prefix("cuda") {
-        Some("") => 0,
-        Some(n) => n
-            .strip_prefix(':')
-            .and_then(|n| n.parse().ok())
-            .ok_or_else(|| {
-                EngineError::config("device", format!("cannot parse `{s}` ({expected})"))
-            })?,
-        None => {
-            return Err(EngineError::config(
-                "device",
-                format!("unknown device `{s}` ({expected})"),
-            ))
-        }
+    let ordinal = match s.parse::<DeviceName>()? {
+        DeviceName::Cpu => return Ok(Device::Cpu),
+        DeviceName::Cuda(ordinal) => ordinal,
     };
     Device::new_cuda(ordinal).map_err(|e| {
         EngineError::config(

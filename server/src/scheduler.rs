@@ -32,11 +32,8 @@ pub async fn register_worker(
     } else {
         caps.device.clone()
     };
-    if !(device == "cpu" || device == "cuda" || device.starts_with("cuda:")) {
-        return Err(invalid(
-            "capabilities.device",
-            format!("{device:?}: expected `cpu`, `cuda` or `cuda:N`"),
-        ));
+    if let Err(e) = device.parse::<stylenerf_plan::device::DeviceName>() {
+        return Err(invalid("capabilities.device", e.reason));
     }
     if request.name.len() > 200 {
         return Err(invalid("name", "longer than 200 characters"));

@@ -362,3 +362,29 @@ async fn a_job_that_failed_in_its_final_render_renders_again() {
         pb::JobState::Succeeded
     );
 }
+
+#[tokio::test]
+async fn a_worker_advertising_an_unknown_device_is_refused_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut workers = worker_client(&server, Some(WORKER)).await;
+    let register = |device: &str| pb::RegisterWorkerRequest {
+        name: "w".into(),
+        capabilities: Some(pb::Capabilities {
+            device: device.into(),
+            memory_bytes: 0,
+            labels: Vec::new(),
+            max_tasks: 1,
+        }),
+        worker_id: String::new(),
+    };
+    for bad in ["gpu", "cuda:x", "cuda0"] {
+        let err = workers.register_worker(register(bad)).await.unwrap_err();
+        assert_eq!(err.code(), tonic::Code::InvalidArgument, "{bad}");
+        let detail = format!("{err:?}");
+        assert!(detail.contains("capabilities.device"), "{bad}: {detail}");
+    }
+    for good in ["cpu", "cuda", "cuda:1"] {
+        workers.register_worker(register(good)).await.unwrap();
+    }
+}
