@@ -53,13 +53,18 @@ pub fn save(dir: &Path, field: &RadianceField, meta: &FieldMeta) -> Result<()> {
     write_atomic(&dir.join("field.json"), &json)
 }
 
-/// Reads a field written by [`save`].
-pub fn load(dir: &Path, device: &Device) -> Result<(RadianceField, FieldMeta)> {
+/// Reads the metadata of a field written by [`save`] (cameras, space, sampling), without
+/// its weights.
+pub fn load_meta(dir: &Path) -> Result<FieldMeta> {
     let json_path = dir.join("field.json");
     let bytes = std::fs::read(&json_path).map_err(|e| EngineError::io(&json_path, e))?;
-    let meta: FieldMeta = serde_json::from_slice(&bytes).map_err(|e| {
-        EngineError::artifact(&json_path, format!("unreadable field metadata: {e}"))
-    })?;
+    serde_json::from_slice(&bytes)
+        .map_err(|e| EngineError::artifact(&json_path, format!("unreadable field metadata: {e}")))
+}
+
+/// Reads a field written by [`save`].
+pub fn load(dir: &Path, device: &Device) -> Result<(RadianceField, FieldMeta)> {
+    let meta = load_meta(dir)?;
     let weights = dir.join("field.safetensors");
     let tensors = candle_core::safetensors::load(&weights, device)
         .map_err(|e| EngineError::artifact(&weights, format!("unreadable field weights: {e}")))?;

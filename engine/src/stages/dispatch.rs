@@ -204,8 +204,7 @@ pub fn run(
             let path = match inputs.path {
                 None => None,
                 Some(request) => {
-                    let (_, meta) = saved::load(field_dir, device)?;
-                    let train = meta.train_cameras;
+                    let train = saved::load_meta(field_dir)?.train_cameras;
                     let keyframes = train.len().clamp(2, 8);
                     Some(camera_path(request.kind, &train, request.frames, keyframes))
                 }
