@@ -13,7 +13,12 @@ buf="$TOOLS/npm/node_modules/.bin/buf"
 "$buf" lint proto
 echo "buf lint: proto/ clean"
 if git cat-file -e "$BASELINE^{commit}" 2>/dev/null; then
-  "$buf" breaking proto --against ".git#ref=$BASELINE,subdir=proto"
+  # The baseline's proto/ is exported with git itself: buf's own `.git#ref=` input clones only
+  # the newest 50 commits and so stops finding the baseline once main moves past it.
+  against=$(mktemp -d)
+  trap 'rm -rf "$against"' EXIT
+  git archive "$BASELINE" proto | tar -x -C "$against"
+  "$buf" breaking proto --against "$against/proto"
   echo "buf breaking: compatible with $BASELINE"
 elif [[ $(git rev-parse --is-shallow-repository) == true ]]; then
   echo "buf breaking: skipped, $BASELINE is not in this shallow clone" >&2
