@@ -26,6 +26,9 @@ pub enum EngineError {
     /// A checkpoint or artifact could not be read back.
     #[error("{}: {reason}", path.display())]
     Artifact { path: PathBuf, reason: String },
+    /// An external program (COLMAP, ffmpeg) is missing or failed.
+    #[error("{tool}: {reason}")]
+    Tool { tool: String, reason: String },
     /// The stage was cancelled through its control handle.
     #[error("cancelled")]
     Cancelled,

@@ -14,6 +14,7 @@ pub mod image_io;
 pub mod malloc;
 pub mod named;
 pub mod optim;
+pub mod poses;
 pub mod rays;
 pub mod render;
 pub mod rng;

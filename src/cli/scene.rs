@@ -1,12 +1,17 @@
-//! `stylenerf scene …`: generate procedural scenes and inspect datasets.
+//! `stylenerf scene …`: generate procedural scenes, recover camera poses for plain photos or a
+//! video (COLMAP), compare poses, and inspect datasets.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Subcommand, ValueEnum};
+use stylenerf_engine::poses::{
+    self, align, CameraModel, Matcher, PosesOptions, PosesReport, VideoSampling,
+};
 use stylenerf_engine::scene::generate::{self, CameraRig, GenerateOptions, Surroundings};
 use stylenerf_engine::scene::{LoadOptions, Scene, SceneFormat};
+use stylenerf_engine::stages::{Outcome, StageControl};
 
 #[derive(Debug, Subcommand)]
 pub enum SceneCommand {
@@ -25,13 +30,54 @@ pub enum SceneCommand {
         /// Seed of the layout, colours, patterns and light.
         #[arg(long, default_value_t = 7)]
         seed: u64,
-        /// Camera layout: a 360° orbit or a forward-facing grid.
+        /// Camera layout: a 360° spiral orbit, a forward-facing grid, or one turn around the
+        /// subject at a fixed height (as a phone video circles it).
         #[arg(long, value_enum, default_value_t = Kind::Orbit)]
         kind: Kind,
         /// Around the table: a solid colour stated in the dataset (plain), a sky at infinity,
-        /// or a room past the content box (the last two look like real captures).
+        /// a room past the content box, or that room with marbled (never repeating) surfaces,
+        /// which structure from motion needs (the last three look like real captures).
         #[arg(long, value_enum, default_value_t = Around::Plain)]
         surroundings: Around,
+    },
+    /// Camera poses for plain photos or a video, with COLMAP (from the OS packages): writes a
+    /// nerfstudio dataset (transforms.json, images at the working resolution) and a report.
+    /// Rerun with the same --out to resume after an interruption.
+    FromPhotos {
+        /// A folder of photos (PNG/JPEG) or a video file (frames sampled with ffmpeg).
+        input: PathBuf,
+        /// Output folder (COLMAP's work files go to its colmap/ folder).
+        #[arg(long)]
+        out: PathBuf,
+        /// Longest side of the written images, in pixels.
+        #[arg(long, default_value_t = 1024)]
+        max_side: u32,
+        /// Feature matching: auto picks sequential for a video, exhaustive for up to 300
+        /// photos, a vocabulary tree (built from the photos' own features) above.
+        #[arg(long, value_enum, default_value_t = MatcherArg::Auto)]
+        matcher: MatcherArg,
+        /// Camera model COLMAP estimates, shared by all images.
+        #[arg(long, value_enum, default_value_t = CameraArg::Opencv)]
+        camera_model: CameraArg,
+        /// Video only: candidate frames per second.
+        #[arg(long, default_value_t = 4.0)]
+        fps: f32,
+        /// Video only: frames kept at most (the sharpest of each stretch).
+        #[arg(long, default_value_t = 150)]
+        max_frames: usize,
+        /// Fail when fewer than this fraction of the images are registered.
+        #[arg(long, default_value_t = 0.5)]
+        min_registered: f64,
+    },
+    /// Compare the camera poses of two datasets of the same photos (matched by file name)
+    /// after the similarity transform that best aligns them.
+    ComparePoses {
+        /// transforms.json (or its folder) whose poses are measured.
+        #[arg(long)]
+        recovered: PathBuf,
+        /// transforms.json (or its folder) taken as the truth.
+        #[arg(long)]
+        reference: PathBuf,
     },
     /// Check that a dataset loads and print a summary.
     Info {
@@ -54,6 +100,7 @@ pub enum SceneCommand {
 pub enum Kind {
     Orbit,
     Forward,
+    Turntable,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -61,6 +108,22 @@ pub enum Around {
     Plain,
     Sky,
     Room,
+    Gallery,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum MatcherArg {
+    Auto,
+    Exhaustive,
+    Sequential,
+    VocabTree,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum CameraArg {
+    Opencv,
+    SimpleRadial,
+    Pinhole,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -83,6 +146,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             let rig = match kind {
                 Kind::Orbit => CameraRig::Orbit,
                 Kind::Forward => CameraRig::Forward,
+                Kind::Turntable => CameraRig::Turntable,
             };
             let opts = GenerateOptions {
                 rig,
@@ -93,6 +157,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
                     Around::Plain => Surroundings::Plain,
                     Around::Sky => Surroundings::Sky,
                     Around::Room => Surroundings::Room,
+                    Around::Gallery => Surroundings::Gallery,
                 },
             };
             let start = Instant::now();
@@ -102,6 +167,100 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
                 "wrote {views} views of {size}×{size} ({kind:?}, seed {seed}) to {} in {:.1?}",
                 out.display(),
                 start.elapsed()
+            );
+            Ok(())
+        }
+        SceneCommand::FromPhotos {
+            input,
+            out,
+            max_side,
+            matcher,
+            camera_model,
+            fps,
+            max_frames,
+            min_registered,
+        } => {
+            let defaults = PosesOptions::default();
+            let opts = PosesOptions {
+                max_side,
+                matcher: match matcher {
+                    MatcherArg::Auto => Matcher::Auto,
+                    MatcherArg::Exhaustive => Matcher::Exhaustive,
+                    MatcherArg::Sequential => Matcher::Sequential,
+                    MatcherArg::VocabTree => Matcher::VocabTree,
+                },
+                camera_model: match camera_model {
+                    CameraArg::Opencv => CameraModel::Opencv,
+                    CameraArg::SimpleRadial => CameraModel::SimpleRadial,
+                    CameraArg::Pinhole => CameraModel::Pinhole,
+                },
+                video: VideoSampling {
+                    fps,
+                    max_frames,
+                    ..defaults.video
+                },
+                min_registered,
+                ..defaults
+            };
+            anyhow::ensure!(
+                (8..=16384).contains(&max_side),
+                "--max-side must be in 8..=16384, found {max_side}"
+            );
+            anyhow::ensure!(
+                fps > 0.0 && max_frames >= 3,
+                "--fps must be positive and --max-frames at least 3"
+            );
+            let start = Instant::now();
+            let control = StageControl::default();
+            let report = match poses::run(&input, &out.join("colmap"), &out, &opts, &control)? {
+                Outcome::Done(report) => report,
+                Outcome::Stopped { step } => anyhow::bail!("stopped after step {step}"),
+            };
+            print_poses(&report);
+            println!(
+                "wrote {} in {:.1?}; next: stylenerf run --data {}",
+                out.join("transforms.json").display(),
+                start.elapsed(),
+                out.display()
+            );
+            Ok(())
+        }
+        SceneCommand::ComparePoses {
+            recovered,
+            reference,
+        } => {
+            let file = |p: PathBuf| {
+                if p.is_dir() {
+                    p.join("transforms.json")
+                } else {
+                    p
+                }
+            };
+            let rec = align::read_transforms(&file(recovered))?;
+            let truth = align::read_transforms(&file(reference))?;
+            let names: Vec<&String> = rec.keys().filter(|n| truth.contains_key(*n)).collect();
+            let a: Vec<_> = names.iter().map(|n| rec[*n]).collect();
+            let b: Vec<_> = names.iter().map(|n| truth[*n]).collect();
+            let e = align::pose_errors(&a, &b).with_context(|| {
+                format!(
+                    "{} cameras in common: need at least 3 not on one line",
+                    names.len()
+                )
+            })?;
+            println!(
+                "cameras     {} in common ({} recovered, {} reference)",
+                e.cameras,
+                rec.len(),
+                truth.len()
+            );
+            println!(
+                "rotation    median {:.3}°, max {:.3}°",
+                e.median_rotation_deg, e.max_rotation_deg
+            );
+            println!(
+                "position    median {:.2}%, max {:.2}% of the camera spread",
+                e.median_position * 100.0,
+                e.max_position * 100.0
             );
             Ok(())
         }
@@ -130,6 +289,30 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+fn print_poses(r: &PosesReport) {
+    println!(
+        "registered  {} of {} images ({:.0}%)",
+        r.registered,
+        r.images,
+        100.0 * r.registered as f64 / r.images.max(1) as f64
+    );
+    if !r.unregistered.is_empty() {
+        println!("not placed  {}", r.unregistered.join(", "));
+    }
+    println!(
+        "sparse      {} points, mean reprojection error {:.3} px, {:.0} features per image",
+        r.points, r.mean_reprojection_px, r.mean_features
+    );
+    println!("matcher     {:?}, camera {:?}", r.matcher, r.camera_model);
+    println!("resolution  {}×{}", r.resolution.0, r.resolution.1);
+    let steps: Vec<String> = r
+        .seconds
+        .iter()
+        .map(|(k, v)| format!("{k} {v:.1}s"))
+        .collect();
+    println!("time        {}", steps.join(", "));
 }
 
 fn print_summary(format: SceneFormat, scene: &Scene) {

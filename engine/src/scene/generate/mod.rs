@@ -35,6 +35,10 @@ pub enum CameraRig {
     /// Forward-facing: a grid of cameras in a plane in front of the scene, all looking the
     /// same way (also written as LLFF).
     Forward,
+    /// One turn around the subject with the height swaying between 20° and 40° elevation, as a
+    /// phone walked once around it films: consecutive frames overlap closely (what structure
+    /// from motion needs; a constant height would be a critical motion for self-calibration).
+    Turntable,
 }
 
 /// What to generate.
@@ -108,11 +112,12 @@ pub fn generate(opts: &GenerateOptions, out: &Path) -> Result<()> {
     let cameras = match opts.rig {
         CameraRig::Orbit => orbit(opts.size, opts.views),
         CameraRig::Forward => forward(opts.size, opts.views),
+        CameraRig::Turntable => turntable(opts.size, opts.views),
     };
     let poses: Vec<bounds::Pose> = cameras.iter().map(|c| (c.position, c.forward())).collect();
     let (near, far) = bounds::near_far(&poses, &AABB);
     // Finest depth unit that fits every depth in 16 bits (the room's walls are farther).
-    let depth_scale = if far < 6.5 && opts.surroundings != Surroundings::Room {
+    let depth_scale = if far < 6.5 && !opts.surroundings.is_room() {
         1e-4
     } else {
         1e-3
@@ -159,7 +164,7 @@ pub fn generate(opts: &GenerateOptions, out: &Path) -> Result<()> {
         "frames": frames,
     });
     let keys = transforms.as_object_mut().expect("a JSON object");
-    if opts.surroundings != Surroundings::Room {
+    if !opts.surroundings.is_room() {
         keys.insert(
             "aabb".into(),
             json!([AABB.min.to_array().map(num), AABB.max.to_array().map(num)]),
@@ -205,20 +210,35 @@ fn intrinsics(size: u32, fov_x_degrees: f32) -> Intrinsics {
 }
 
 fn orbit(size: u32, views: usize) -> Vec<Camera> {
-    let k = intrinsics(size, ORBIT_FOV_X);
     (0..views)
         .map(|i| {
             let along = i as f32 / (views - 1) as f32;
-            let elevation = (15.0 + 40.0 * along).to_radians();
             let azimuth = std::f32::consts::TAU * ORBIT_TURNS * i as f32 / views as f32;
-            let dir = Vec3::new(
-                elevation.cos() * azimuth.cos(),
-                elevation.sin(),
-                elevation.cos() * azimuth.sin(),
-            );
-            Camera::look_at(k, ORBIT_TARGET + ORBIT_RADIUS * dir, ORBIT_TARGET, Vec3::Y)
+            orbit_camera(size, 15.0 + 40.0 * along, azimuth)
         })
         .collect()
+}
+
+fn turntable(size: u32, views: usize) -> Vec<Camera> {
+    (0..views)
+        .map(|i| {
+            let azimuth = std::f32::consts::TAU * i as f32 / views as f32;
+            orbit_camera(size, 30.0 + 10.0 * (2.0 * azimuth).sin(), azimuth)
+        })
+        .collect()
+}
+
+/// A camera on the orbit sphere at `elevation` degrees and `azimuth` radians, looking at the
+/// orbit's target.
+fn orbit_camera(size: u32, elevation: f32, azimuth: f32) -> Camera {
+    let elevation = elevation.to_radians();
+    let dir = Vec3::new(
+        elevation.cos() * azimuth.cos(),
+        elevation.sin(),
+        elevation.cos() * azimuth.sin(),
+    );
+    let k = intrinsics(size, ORBIT_FOV_X);
+    Camera::look_at(k, ORBIT_TARGET + ORBIT_RADIUS * dir, ORBIT_TARGET, Vec3::Y)
 }
 
 /// A grid of parallel cameras in the plane z = 1.9, visited row by row in serpentine order.

@@ -38,6 +38,16 @@ pub enum Surroundings {
     /// A room around the table, past the content box: striped walls, a tiled floor and a
     /// ceiling, lit like the objects; a capture with no box and no background.
     Room,
+    /// The room with marbled walls, floor and table top: no pattern repeats, as in a lived-in
+    /// room, so structure from motion can tell views apart (stripes and tiles defeat it).
+    Gallery,
+}
+
+impl Surroundings {
+    /// Whether a room surrounds the table (the capture is unbounded).
+    pub fn is_room(self) -> bool {
+        matches!(self, Self::Room | Self::Gallery)
+    }
 }
 
 /// The objects of one footprint, given the footprint's centre on the floor.
@@ -281,6 +291,26 @@ impl World {
             axis,
             period: 0.45,
         };
+        if surroundings == Surroundings::Gallery {
+            // Drawn from the hues above, not the generator, so every other scene of a seed stays
+            // as it was.
+            let marble = |hue: f32, seed: u32, scale: f32| Texture::Marble {
+                a: hsv(hue, 0.45, 0.85),
+                b: hsv(hue + 0.15, 0.6, 0.35),
+                vein: hsv(hue + 0.5, 0.3, 0.95),
+                scale,
+                seed,
+            };
+            objects[0].texture = marble(floor_hue, 11, 3.0);
+            let room =
+                std::array::from_fn(|i| marble(wall_hue + 0.17 * i as f32, 20 + i as u32, 1.3));
+            return Self {
+                objects,
+                light,
+                surroundings,
+                room,
+            };
+        }
         let room = [
             wall(wall_hue, Vec3::Z),
             wall(wall_hue + 0.5, Vec3::Z),
@@ -357,7 +387,7 @@ impl World {
         match self.surroundings {
             Surroundings::Plain => (BACKGROUND, None),
             Surroundings::Sky => (self.sky(d), None),
-            Surroundings::Room => {
+            Surroundings::Room | Surroundings::Gallery => {
                 let (t, normal, surface) = Self::room_exit(o, d);
                 let p = o + t * d;
                 (
