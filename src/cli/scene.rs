@@ -52,6 +52,9 @@ pub enum SceneCommand {
         /// Longest side of the written images, in pixels.
         #[arg(long, default_value_t = 1024)]
         max_side: u32,
+        /// Longest side COLMAP extracts features at (smaller is faster, larger finds more).
+        #[arg(long, default_value_t = PosesOptions::default().feature_max_side)]
+        feature_max_side: u32,
         /// Feature matching: auto picks sequential for a video, exhaustive for up to 300
         /// photos, a vocabulary tree (built from the photos' own features) above.
         #[arg(long, value_enum, default_value_t = MatcherArg::Auto)]
@@ -174,6 +177,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             input,
             out,
             max_side,
+            feature_max_side,
             matcher,
             camera_model,
             fps,
@@ -183,6 +187,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             let defaults = PosesOptions::default();
             let opts = PosesOptions {
                 max_side,
+                feature_max_side,
                 matcher: match matcher {
                     MatcherArg::Auto => Matcher::Auto,
                     MatcherArg::Exhaustive => Matcher::Exhaustive,
@@ -203,8 +208,10 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
                 ..defaults
             };
             anyhow::ensure!(
-                (8..=16384).contains(&max_side),
-                "--max-side must be in 8..=16384, found {max_side}"
+                [max_side, feature_max_side]
+                    .iter()
+                    .all(|s| (8..=16384).contains(s)),
+                "--max-side and --feature-max-side must be in 8..=16384"
             );
             anyhow::ensure!(
                 fps > 0.0 && max_frames >= 3,
