@@ -1,6 +1,7 @@
 //! Camera poses from plain images with COLMAP (`engine/src/poses`), checked against the
 //! generator's ground truth: a turntable of the gallery scene as photos and as a video, a
-//! stopped run resumed at its next step, and a set COLMAP cannot solve refused with its cause.
+//! stopped run resumed at its next step, a set COLMAP cannot solve refused with its cause, and
+//! an output folder that would overwrite the photos refused.
 //! Needs `colmap` and `ffmpeg` from the OS packages; without them the tests say so and pass,
 //! unless `STYLENERF_REQUIRE_TEST_TOOLS` is set, as `.ci/run` does.
 
@@ -152,7 +153,7 @@ fn a_turntable_video_gets_the_generators_poses() {
 }
 
 #[test]
-fn images_colmap_cannot_place_are_refused_with_the_likely_cause() {
+fn unsolvable_images_get_their_likely_cause_and_an_output_over_the_input_is_refused() {
     if !tools_present() {
         return;
     }
@@ -175,4 +176,18 @@ fn images_colmap_cannot_place_are_refused_with_the_likely_cause() {
     assert!(err.contains("registered 0 of 4 images"), "{err}");
     assert!(err.contains("textureless"), "{err}");
     assert!(!tmp.path().join("out/transforms.json").exists());
+
+    // An output folder whose images/ is the input is refused before anything runs.
+    let photos_in_place = tmp.path().join("capture/images");
+    std::fs::create_dir_all(&photos_in_place).unwrap();
+    let err = poses::run(
+        &photos_in_place,
+        &tmp.path().join("work2"),
+        &tmp.path().join("capture"),
+        &PosesOptions::default(),
+        &StageControl::default(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("would replace the photos"), "{err}");
 }

@@ -55,6 +55,9 @@ pub enum SceneCommand {
         /// Longest side COLMAP extracts features at (smaller is faster, larger finds more).
         #[arg(long, default_value_t = PosesOptions::default().feature_max_side)]
         feature_max_side: u32,
+        /// Most SIFT features kept per image (CPU matching time grows with its square).
+        #[arg(long, default_value_t = PosesOptions::default().max_features)]
+        max_features: u32,
         /// Feature matching: auto picks sequential for a video, exhaustive for up to 300
         /// photos, a vocabulary tree (built from the photos' own features) above.
         #[arg(long, value_enum, default_value_t = MatcherArg::Auto)]
@@ -178,16 +181,17 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             out,
             max_side,
             feature_max_side,
+            max_features,
             matcher,
             camera_model,
             fps,
             max_frames,
             min_registered,
         } => {
-            let defaults = PosesOptions::default();
             let opts = PosesOptions {
                 max_side,
                 feature_max_side,
+                max_features,
                 matcher: match matcher {
                     MatcherArg::Auto => Matcher::Auto,
                     MatcherArg::Exhaustive => Matcher::Exhaustive,
@@ -202,16 +206,19 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
                 video: VideoSampling {
                     fps,
                     max_frames,
-                    ..defaults.video
+                    ..PosesOptions::default().video
                 },
                 min_registered,
-                ..defaults
             };
             anyhow::ensure!(
                 [max_side, feature_max_side]
                     .iter()
                     .all(|s| (8..=16384).contains(s)),
                 "--max-side and --feature-max-side must be in 8..=16384"
+            );
+            anyhow::ensure!(
+                (64..=65536).contains(&max_features),
+                "--max-features must be in 64..=65536"
             );
             anyhow::ensure!(
                 fps > 0.0 && max_frames >= 3,

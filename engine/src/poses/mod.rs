@@ -20,7 +20,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 pub use input::{InputKind, VideoSampling};
-pub use model::SparseModel;
+use model::SparseModel;
 pub use tools::Tool;
 
 use crate::checkpoint::write_json_atomic;
@@ -73,6 +73,8 @@ pub struct PosesOptions {
     pub max_side: u32,
     /// Longest side COLMAP extracts features at.
     pub feature_max_side: u32,
+    /// Most SIFT features kept per image (CPU matching time grows with its square).
+    pub max_features: u32,
     pub matcher: Matcher,
     pub camera_model: CameraModel,
     pub video: VideoSampling,
@@ -85,6 +87,7 @@ impl Default for PosesOptions {
         Self {
             max_side: 1024,
             feature_max_side: 1600,
+            max_features: 8192,
             matcher: Matcher::Auto,
             camera_model: CameraModel::Opencv,
             video: VideoSampling {
@@ -146,6 +149,21 @@ pub fn run(
     for dir in [work, out] {
         std::fs::create_dir_all(dir).map_err(|e| EngineError::io(dir, e))?;
     }
+    // The dataset's images/ are written at the working resolution: never over the originals.
+    let same = |a: &Path, b: &Path| {
+        a.canonicalize()
+            .is_ok_and(|a| b.canonicalize().is_ok_and(|b| a == b))
+    };
+    if kind == InputKind::Photos && same(input, &out.join("images")) {
+        return Err(EngineError::config(
+            "out",
+            format!(
+                "{}/images is the input folder: the downscaled images would replace the \
+                 photos; choose another output folder",
+                out.display()
+            ),
+        ));
+    }
     let ck_path = work.join("poses_checkpoint.json");
     let mut ck: Checkpoint = match std::fs::read(&ck_path) {
         Ok(bytes) => serde_json::from_slice(&bytes)
@@ -204,6 +222,10 @@ pub fn run(
                     (
                         "--SiftExtraction.max_image_size",
                         Some(opts.feature_max_side.to_string()),
+                    ),
+                    (
+                        "--SiftExtraction.max_num_features",
+                        Some(opts.max_features.to_string()),
                     ),
                 ]);
                 colmap.run("feature extraction", &args, &log, control)?;

@@ -28,11 +28,6 @@ impl Tool {
         Self::find("ffmpeg", "STYLENERF_FFMPEG", "ffmpeg")
     }
 
-    /// Whether COLMAP is installed (what a worker advertises; ffmpeg is needed only for videos).
-    pub fn colmap_available() -> bool {
-        Self::colmap().is_ok()
-    }
-
     fn find(name: &'static str, env: &str, package: &str) -> Result<Self> {
         let program = match std::env::var_os(env) {
             Some(p) => {
