@@ -14,6 +14,8 @@ use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::{Outcome, StageControl};
 
 const VIEWS: usize = 30;
+// Every view registers here; the assertions leave room for three not to (COLMAP's threads
+// may order work differently on another machine).
 
 fn tools_present() -> bool {
     let present = Tool::colmap().is_ok() && Tool::ffmpeg().is_ok();
@@ -94,7 +96,7 @@ fn photos_of_a_generated_turntable_get_the_generators_poses_and_a_stopped_run_re
 
     assert_eq!(report.images, VIEWS);
     assert!(
-        report.registered as f64 >= 0.95 * VIEWS as f64,
+        report.registered as f64 >= 0.9 * VIEWS as f64,
         "{report:?}"
     );
     assert!(report.mean_reprojection_px < 1.5, "{report:?}");
@@ -143,7 +145,7 @@ fn a_turntable_video_gets_the_generators_poses() {
     );
     assert_eq!(report.images, VIEWS);
     assert!(
-        report.registered as f64 >= 0.95 * VIEWS as f64,
+        report.registered as f64 >= 0.9 * VIEWS as f64,
         "{report:?}"
     );
     let transforms = std::fs::read_to_string(out.join("transforms.json")).unwrap();
