@@ -95,10 +95,7 @@ fn photos_of_a_generated_turntable_get_the_generators_poses_and_a_stopped_run_re
     );
 
     assert_eq!(report.images, VIEWS);
-    assert!(
-        report.registered as f64 >= 0.9 * VIEWS as f64,
-        "{report:?}"
-    );
+    assert!(report.registered as f64 >= 0.9 * VIEWS as f64, "{report:?}");
     assert!(report.mean_reprojection_px < 1.5, "{report:?}");
     assert_eq!(report.resolution, (128, 128));
     let (cameras, rot, pos) = errors(&out, &scene, |n| n.to_string());
@@ -144,10 +141,7 @@ fn a_turntable_video_gets_the_generators_poses() {
         .unwrap(),
     );
     assert_eq!(report.images, VIEWS);
-    assert!(
-        report.registered as f64 >= 0.9 * VIEWS as f64,
-        "{report:?}"
-    );
+    assert!(report.registered as f64 >= 0.9 * VIEWS as f64, "{report:?}");
     let transforms = std::fs::read_to_string(out.join("transforms.json")).unwrap();
     assert!(transforms.contains("\"sharpness\""));
     let (_, rot, pos) = errors(&out, &scene, |n| n.to_string());
