@@ -1,7 +1,7 @@
 //! Small helpers between f32 pixel buffers and image files: saving RGB previews atomically,
 //! colour-mapping depth, and loading style/content images as linear [0, 1] RGB.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use image::{Rgb, Rgb32FImage, RgbImage};
 
@@ -12,6 +12,19 @@ pub fn has_image_extension(path: &Path) -> bool {
     path.extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()))
+}
+
+/// The PNG and JPEG files of a folder (not its subfolders), in name order.
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| EngineError::io(dir, e))? {
+        let path = entry.map_err(|e| EngineError::io(dir, e))?.path();
+        if path.is_file() && has_image_extension(&path) {
+            files.push(path);
+        }
+    }
+    files.sort();
+    Ok(files)
 }
 
 /// Quantises interleaved RGB in [0, 1] to 8-bit.

@@ -199,12 +199,7 @@ fn image_files(path: &std::path::Path) -> anyhow::Result<Vec<PathBuf>> {
     if !path.is_dir() {
         return Ok(vec![path.to_path_buf()]);
     }
-    let mut files: Vec<PathBuf> = std::fs::read_dir(path)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| image_io::has_image_extension(p))
-        .collect();
-    files.sort();
+    let files = image_io::image_files(path)?;
     if files.is_empty() {
         anyhow::bail!("{}: no .png or .jpg files in this folder", path.display());
     }

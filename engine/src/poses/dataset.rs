@@ -10,19 +10,10 @@ use rayon::prelude::*;
 use serde_json::{json, Map, Value};
 
 use super::model::{ColmapCamera, SparseModel};
+use crate::camera::Intrinsics;
 use crate::checkpoint::{write_atomic, write_json_atomic};
+use crate::scene::{working_intrinsics, LoadOptions};
 use crate::{EngineError, Result};
-
-/// The size of `(w, h)` with its longest side at most `max_side`.
-pub(crate) fn working_size(w: u32, h: u32, max_side: u32) -> (u32, u32) {
-    let longest = w.max(h);
-    if longest <= max_side {
-        return (w, h);
-    }
-    let s = max_side as f64 / longest as f64;
-    let scaled = |v: u32| ((v as f64 * s).round() as u32).max(1);
-    (scaled(w), scaled(h))
-}
 
 /// Writes `model`'s registered images from `images` into `out/images/` and
 /// `out/transforms.json`. `sharpness` (by image name) is recorded per frame when known.
@@ -111,7 +102,24 @@ fn intrinsics(obj: &mut Map<String, Value>, c: &ColmapCamera) {
 /// so the principal point scales with the image; distortion is in normalised coordinates and
 /// does not change.
 fn scale_camera(c: &ColmapCamera, max_side: u32) -> ColmapCamera {
-    let (w, h) = working_size(c.width, c.height, max_side);
+    // The size the loader would train a frame of this camera at with this `max_side`.
+    let k = Intrinsics {
+        fx: c.fx as f32,
+        fy: c.fy as f32,
+        cx: c.cx as f32,
+        cy: c.cy as f32,
+        width: c.width,
+        height: c.height,
+    };
+    let opts = LoadOptions {
+        max_side: Some(max_side),
+        ..LoadOptions::default()
+    };
+    let Intrinsics {
+        width: w,
+        height: h,
+        ..
+    } = working_intrinsics(&k, &opts);
     let (sx, sy) = (w as f64 / c.width as f64, h as f64 / c.height as f64);
     ColmapCamera {
         width: w,
@@ -158,8 +166,6 @@ mod tests {
 
     #[test]
     fn working_size_keeps_the_aspect_and_small_images() {
-        assert_eq!(working_size(1080, 1920, 480), (270, 480));
-        assert_eq!(working_size(200, 100, 480), (200, 100));
         let c = ColmapCamera {
             width: 1080,
             height: 1920,
@@ -173,5 +179,12 @@ mod tests {
         assert_eq!((s.width, s.height), (270, 480));
         assert!((s.fx - 1375.5 / 4.0).abs() < 1e-9 && (s.cy - 965.3 / 4.0).abs() < 1e-9);
         assert_eq!(s.distortion, c.distortion);
+        let small = ColmapCamera {
+            width: 200,
+            height: 100,
+            ..c
+        };
+        let s = scale_camera(&small, 480);
+        assert_eq!((s.width, s.height), (200, 100));
     }
 }

@@ -8,7 +8,7 @@ use image::GrayImage;
 use rayon::prelude::*;
 
 use super::tools::Tool;
-use crate::image_io::has_image_extension;
+use crate::image_io::image_files;
 use crate::stages::StageControl;
 use crate::{EngineError, Result};
 
@@ -49,18 +49,10 @@ impl InputKind {
 
 /// The photos of a folder (PNG and JPEG, in name order), as names relative to it.
 pub fn photos(dir: &Path) -> Result<Vec<String>> {
-    let entries = std::fs::read_dir(dir).map_err(|e| EngineError::io(dir, e))?;
-    let mut names = Vec::new();
-    for entry in entries {
-        let entry = entry.map_err(|e| EngineError::io(dir, e))?;
-        let path = entry.path();
-        if path.is_file() && has_image_extension(&path) {
-            if let Some(name) = path.file_name().and_then(|n| n.to_str()) {
-                names.push(name.to_string());
-            }
-        }
-    }
-    names.sort();
+    let names: Vec<String> = image_files(dir)?
+        .iter()
+        .filter_map(|p| Some(p.file_name()?.to_str()?.to_string()))
+        .collect();
     if names.len() < 3 {
         return Err(EngineError::dataset(
             dir,
@@ -121,14 +113,13 @@ pub fn video_frames(
     .map(|s| s.to_string())
     .collect();
     ffmpeg.run("frame extraction", &args, log, control)?;
-    let mut names = photos(&candidates).map_err(|_| {
+    let names = photos(&candidates).map_err(|_| {
         EngineError::dataset(
             video,
             "input",
             "ffmpeg decoded fewer than 3 frames: the video is too short or not a video",
         )
     })?;
-    names.retain(|n| n.starts_with("c_"));
     let scores: Vec<f64> = names
         .par_iter()
         .map(|n| {

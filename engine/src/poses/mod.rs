@@ -503,22 +503,19 @@ mod tests {
 
     #[test]
     fn the_matcher_follows_the_input() {
-        assert_eq!(
-            resolve_matcher(Matcher::Auto, InputKind::Video, 10),
-            Matcher::Sequential
-        );
-        assert_eq!(
-            resolve_matcher(Matcher::Auto, InputKind::Photos, 50),
-            Matcher::Exhaustive
-        );
-        assert_eq!(
-            resolve_matcher(Matcher::Auto, InputKind::Photos, 301),
-            Matcher::VocabTree
-        );
-        assert_eq!(
-            resolve_matcher(Matcher::Sequential, InputKind::Photos, 5),
-            Matcher::Sequential
-        );
+        for (asked, kind, images, chosen) in [
+            (Matcher::Auto, InputKind::Video, 10, Matcher::Sequential),
+            (Matcher::Auto, InputKind::Photos, 50, Matcher::Exhaustive),
+            (Matcher::Auto, InputKind::Photos, 301, Matcher::VocabTree),
+            (
+                Matcher::Sequential,
+                InputKind::Photos,
+                5,
+                Matcher::Sequential,
+            ),
+        ] {
+            assert_eq!(resolve_matcher(asked, kind, images), chosen);
+        }
     }
 
     #[test]

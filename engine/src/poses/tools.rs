@@ -152,6 +152,13 @@ pub(crate) fn log_tail(log: &Path, lines: usize) -> String {
 mod tests {
     use super::*;
 
+    fn shell() -> Tool {
+        Tool {
+            name: "sh",
+            program: "/bin/sh".into(),
+        }
+    }
+
     #[test]
     fn a_missing_program_is_named_with_how_to_install_it() {
         let err = Tool::find("no-such-program-x", "STYLENERF_TEST_UNSET_VAR", "pkg").unwrap_err();
@@ -163,10 +170,7 @@ mod tests {
     #[test]
     fn a_failing_step_reports_the_end_of_its_log() {
         let dir = tempfile::tempdir().unwrap();
-        let sh = Tool {
-            name: "sh",
-            program: "/bin/sh".into(),
-        };
+        let sh = shell();
         let log = dir.path().join("log.txt");
         let args = [
             "-c".to_string(),
@@ -186,10 +190,7 @@ mod tests {
     #[test]
     fn a_cancelled_stage_kills_the_program() {
         let dir = tempfile::tempdir().unwrap();
-        let sh = Tool {
-            name: "sh",
-            program: "/bin/sh".into(),
-        };
+        let sh = shell();
         let control = StageControl::default();
         let flag = control.cancel_flag();
         std::thread::spawn(move || {

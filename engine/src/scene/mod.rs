@@ -8,6 +8,7 @@ pub mod blender;
 mod bounds;
 mod distortion;
 mod frames;
+pub(crate) use frames::working_intrinsics;
 pub mod generate;
 mod images;
 mod json;
