@@ -1,7 +1,7 @@
 //! Camera poses from plain images with COLMAP (`engine/src/poses`), checked against the
 //! generator's ground truth: a turntable of the gallery scene as photos and as a video, a
 //! stopped run resumed at its next step, a set COLMAP cannot solve refused with its cause, and
-//! an output folder that would overwrite the photos refused.
+//! an output folder that would overwrite the photos and a file that is no video refused.
 //! Needs `colmap` and `ffmpeg` from the OS packages; without them the tests say so and pass,
 //! unless `STYLENERF_REQUIRE_TEST_TOOLS` is set, as `.ci/run` does.
 
@@ -186,4 +186,21 @@ fn unsolvable_images_get_their_likely_cause_and_an_output_over_the_input_is_refu
     .unwrap_err()
     .to_string();
     assert!(err.contains("would replace the photos"), "{err}");
+
+    // A "video" ffmpeg cannot decode is named as the input at fault.
+    let video = tmp.path().join("holiday.mp4");
+    std::fs::write(&video, b"not a video at all").unwrap();
+    let err = poses::run(
+        &video,
+        &tmp.path().join("work3"),
+        &tmp.path().join("out3"),
+        &PosesOptions::default(),
+        &StageControl::default(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("holiday.mp4") && err.contains("cannot read it as a video"),
+        "{err}"
+    );
 }

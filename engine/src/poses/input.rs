@@ -112,7 +112,17 @@ pub fn video_frames(
     .iter()
     .map(|s| s.to_string())
     .collect();
-    ffmpeg.run("frame extraction", &args, log, control)?;
+    // A file ffmpeg cannot decode is the user's input at fault, not the tool.
+    ffmpeg
+        .run("frame extraction", &args, log, control)
+        .map_err(|e| match e {
+            EngineError::Tool { reason, .. } => EngineError::dataset(
+                video,
+                "input",
+                format!("ffmpeg cannot read it as a video: {reason}"),
+            ),
+            e => e,
+        })?;
     let names = photos(&candidates).map_err(|_| {
         EngineError::dataset(
             video,
