@@ -9,9 +9,10 @@ use image::Rgb32FImage;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::decoder_pretrain::{
-    run, DecoderPretrainConfig, Inputs, StyleImage, StylesFile,
+    run, DecoderPretrainConfig, DecoderStart, Inputs, StyleImage, StylesFile,
 };
 use stylenerf_engine::stages::{Outcome, StageControl};
+use stylenerf_engine::style2d::decoder::BUNDLED_DECODER_NAME;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::{RenderedViews, ViewInfo, ViewKind};
 use stylenerf_engine::Preset;
@@ -97,6 +98,7 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
         panic!("an uninterrupted run finishes");
     };
     assert_eq!(report.loss_log.len() as u64, cfg.steps);
+    assert_eq!(report.started_from, BUNDLED_DECODER_NAME);
     assert!(report
         .loss_log
         .iter()
@@ -149,6 +151,47 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
             read(&resumed, f),
             "{f} differs after resuming"
         );
+    }
+}
+
+#[test]
+fn the_bundled_decoder_is_the_start_only_for_its_encoder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let views = views(&tmp.path().join("scene"));
+    let styles = styles();
+    let mut other = EncoderWeights::bundled().unwrap();
+    other.source = "another encoder".into();
+    let bundled = EncoderWeights::bundled().unwrap();
+    let tiny = DecoderPretrainConfig {
+        steps: 2,
+        vae_steps: 2,
+        ..DecoderPretrainConfig::preset(Preset::Tiny)
+    };
+    let fresh = DecoderPretrainConfig {
+        start: DecoderStart::Fresh,
+        ..tiny.clone()
+    };
+    for (k, (enc, cfg, want)) in [
+        (&other, &tiny, "fresh"),
+        (&bundled, &fresh, "fresh"),
+        (&bundled, &tiny, BUNDLED_DECODER_NAME),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let inputs = Inputs {
+            views: &views,
+            styles: &styles,
+            encoder: enc,
+            init_decoder: None,
+        };
+        let out = tmp.path().join(format!("run-{k}"));
+        let Outcome::Done(report) =
+            run(inputs, cfg, &out, &StageControl::default(), &Device::Cpu).unwrap()
+        else {
+            panic!("finishes");
+        };
+        assert_eq!(report.started_from, want, "case {k}");
     }
 }
 

@@ -21,12 +21,14 @@ use stylenerf_engine::style2d::weights::EncoderWeights;
 pub enum StylizeCommand {
     /// Stylize one image with AdaIN.
     ///
-    /// No pretrained decoder ships with stylenerf. Without --decoder, this command trains a
-    /// decoder from scratch for this one content/style pair (--train-steps Adam steps on
-    /// AdaIN's content and style losses; a few minutes on a CPU at the default size). That is a
-    /// per-image optimisation: good for a look at a style, not a general AdaIN model. Pass a
-    /// decoder trained by `decoder_pretrain`, or AdaIN's decoder.pth together with
-    /// vgg_normalised.pth as --encoder, for instant feed-forward results.
+    /// Starts from the general decoder bundled with stylenerf (trained for the bundled encoder;
+    /// a fresh one with another --encoder) or from --decoder, and fine-tunes it on this one
+    /// content/style pair for --train-steps Adam steps of AdaIN's content and style losses
+    /// (a minute or two on a CPU at the default size). With the bundled encoder its colours come
+    /// mostly from this fine-tuning: --train-steps 0 gives the general decoder's feed-forward
+    /// result, with the painting's strokes but not its palette. A decoder trained by
+    /// `decoder_pretrain` for this style, or AdaIN's decoder.pth with vgg_normalised.pth as
+    /// --encoder, needs no fine-tuning.
     Image(ImageArgs),
     /// Write the bundled styles (painted by code, see docs/STYLE2D.md) as PNG files.
     ExportStyles(ExportArgs),
@@ -101,7 +103,8 @@ pub struct ImageArgs {
     /// Style strength: 1 = full style, 0 = content features unchanged.
     #[arg(long, default_value_t = 1.0)]
     alpha: f64,
-    /// Pretrained decoder (this project's safetensors or AdaIN's zip-format decoder.pth).
+    /// Decoder to start from (this project's safetensors or AdaIN's zip-format decoder.pth);
+    /// default: the bundled general decoder.
     #[arg(long)]
     decoder: Option<PathBuf>,
     /// Encoder weights (any format `weights import` reads); default: the bundled VGG-16.
@@ -110,9 +113,10 @@ pub struct ImageArgs {
     /// Longer side of the working resolution (rounded to a multiple of 8).
     #[arg(long, default_value_t = 256)]
     size: u32,
-    /// Adam steps when training a decoder for this pair (ignored with --decoder).
-    #[arg(long, default_value_t = FitConfig::default().steps)]
-    train_steps: usize,
+    /// Adam steps fine-tuning the decoder on this pair (0: feed-forward only; default 300
+    /// without --decoder, 0 with it).
+    #[arg(long)]
+    train_steps: Option<usize>,
     /// Weight of the style loss against the content loss when training.
     #[arg(long, default_value_t = FitConfig::default().style_weight)]
     style_weight: f64,
@@ -148,32 +152,39 @@ fn image(a: ImageArgs) -> anyhow::Result<()> {
     let encoder = VggEncoder::new(&weights, &dev)?;
     let content = images::to_tensor(&image_io::load_rgb(&a.content)?, a.size, &dev)?;
     let style = images::to_tensor(&StyleImage::load(&a.style)?.image, a.size, &dev)?;
-    let decoder = match &a.decoder {
-        Some(p) => {
-            let (d, trained_with) = Decoder::load(p, &dev)?;
-            if let Some(t) = trained_with.filter(|t| t != encoder.source()) {
-                tracing::warn!(
-                    "decoder was trained with encoder `{t}`, using `{}`",
-                    encoder.source()
-                );
+    let (decoder, trained_with) = match &a.decoder {
+        Some(p) => Decoder::load(p, &dev)?,
+        None => {
+            let (d, trained_with) = Decoder::bundled(&dev)?;
+            if trained_with == encoder.source() {
+                (d, Some(trained_with))
+            } else {
+                tracing::info!("--encoder is not the bundled decoder's: starting from a fresh one");
+                (Decoder::new(weights.arch, a.seed, &dev)?, None)
             }
-            d
         }
-        None => Decoder::new(weights.arch, a.seed, &dev)?,
     };
+    if let Some(t) = trained_with.as_deref().filter(|t| *t != encoder.source()) {
+        tracing::warn!(
+            "decoder was trained with encoder `{t}`, using `{}`",
+            encoder.source()
+        );
+    }
     let net = AdaInNet { encoder, decoder };
     let target = net.style_target(&style)?;
-    if a.decoder.is_none() {
+    let steps = a.train_steps.unwrap_or(if a.decoder.is_some() {
+        0
+    } else {
+        FitConfig::default().steps
+    });
+    if steps > 0 {
         let cfg = FitConfig {
-            steps: a.train_steps,
+            steps,
             lr: a.lr,
             style_weight: a.style_weight,
         };
         let t0 = Instant::now();
-        tracing::info!(
-            steps = cfg.steps,
-            "no --decoder: training one for this content/style pair"
-        );
+        tracing::info!(steps, "fine-tuning the decoder on this content/style pair");
         fit_pair(&net, &content, &target, cfg, |r| {
             if r.step % 25 == 0 || r.step + 1 == cfg.steps {
                 tracing::info!(

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Subcommand, ValueEnum};
+use stylenerf_engine::style2d::encoder::VggEncoder;
 use stylenerf_engine::style2d::weights::{
     self, EncoderWeights, TorchvisionPreprocess, WeightFormat,
 };
@@ -31,6 +32,18 @@ pub enum WeightsCommand {
     },
     /// Print what an encoder weight file holds (the bundled one when no file is given).
     Info { file: Option<PathBuf> },
+    /// Write the encoder exactly as the engine runs it: input RGB in [0, 1] (the source's
+    /// preprocessing folded into conv1_1) and each layer's activations normalised. Tools
+    /// outside the engine (scripts/train_decoder_gpu.py) read it to see the same features.
+    Export {
+        /// The encoder to export (default: the bundled one).
+        #[arg(long)]
+        encoder: Option<PathBuf>,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, value_enum, default_value_t = DtypeArg::F32)]
+        dtype: DtypeArg,
+    },
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -74,27 +87,39 @@ pub fn run(cmd: WeightsCommand) -> anyhow::Result<()> {
                 PreprocessArg::Imagenet => TorchvisionPreprocess::Imagenet,
                 PreprocessArg::Caffe => TorchvisionPreprocess::Caffe,
             };
-            let w = weights::import(&from, format, tv)?;
-            let dtype = match dtype {
-                DtypeArg::F16 => candle_core::DType::F16,
-                DtypeArg::F32 => candle_core::DType::F32,
-            };
-            w.save(&out, dtype)?;
-            let bytes = std::fs::read(&out).with_context(|| out.display().to_string())?;
-            print_summary(&w);
-            println!(
-                "wrote {} ({} bytes, sha256 {})",
-                out.display(),
-                bytes.len(),
-                weights::sha256_hex(&bytes)
-            );
-            Ok(())
+            save(&weights::import(&from, format, tv)?, &out, dtype)
         }
         WeightsCommand::Info { file } => {
             print_summary(&EncoderWeights::load_or_bundled(file.as_deref())?);
             Ok(())
         }
+        WeightsCommand::Export {
+            encoder,
+            out,
+            dtype,
+        } => {
+            let w = EncoderWeights::load_or_bundled(encoder.as_deref())?;
+            let enc = VggEncoder::new(&w, &candle_core::Device::Cpu)?;
+            save(&enc.weights()?, &out, dtype)
+        }
     }
+}
+
+fn save(w: &EncoderWeights, out: &std::path::Path, dtype: DtypeArg) -> anyhow::Result<()> {
+    let dtype = match dtype {
+        DtypeArg::F16 => candle_core::DType::F16,
+        DtypeArg::F32 => candle_core::DType::F32,
+    };
+    w.save(out, dtype)?;
+    let bytes = std::fs::read(out).with_context(|| out.display().to_string())?;
+    print_summary(w);
+    println!(
+        "wrote {} ({} bytes, sha256 {})",
+        out.display(),
+        bytes.len(),
+        weights::sha256_hex(&bytes)
+    );
+    Ok(())
 }
 
 fn print_summary(w: &EncoderWeights) {
@@ -111,6 +136,14 @@ fn print_summary(w: &EncoderWeights) {
             ", then a 1×1 conv"
         } else {
             ""
+        }
+    );
+    println!(
+        "activations:   {}",
+        if w.normalised {
+            "normalised (used as they are)"
+        } else {
+            "raw (normalised by the encoder when it loads)"
         }
     );
     for (spec, conv) in w.arch.convs().iter().zip(&w.convs) {

@@ -35,7 +35,7 @@ use crate::stages::training::Training;
 use crate::stages::window::Window;
 use crate::stages::{Outcome, StageControl};
 use crate::style2d::arch::VggArch;
-use crate::style2d::decoder::Decoder;
+use crate::style2d::decoder::{Decoder, BUNDLED_DECODER_NAME};
 use crate::style2d::encoder::VggEncoder;
 pub use crate::style2d::images::StyleImage;
 use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc};
@@ -48,9 +48,22 @@ use crate::warp::{Warp, WarpConfig};
 use crate::{EngineError, Result};
 use stylenerf_plan::{Preset, Stage};
 
+/// Where the decoder starts when the stage is not given one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DecoderStart {
+    /// The general decoder bundled with the binary ([`Decoder::bundled`]) when the encoder is
+    /// the one it was trained for; a fresh decoder with any other encoder.
+    Bundled,
+    /// A freshly initialised decoder (seeded by `seed`).
+    Fresh,
+}
+
 /// Configuration of the stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DecoderPretrainConfig {
+    /// The starting decoder when the stage is given none.
+    pub start: DecoderStart,
     pub steps: u64,
     /// Side of the square windows trained per step (0: whole views). The window of the
     /// second view is placed where the first window's scene projects.
@@ -90,9 +103,11 @@ pub struct WarpTolerance {
 impl DecoderPretrainConfig {
     pub fn preset(preset: Preset) -> Self {
         let base = Self {
+            start: DecoderStart::Bundled,
             steps: 300,
             patch: 64,
-            lr: 5e-4,
+            // Fine-tuning the bundled decoder (a fresh one was trained at 5e-4).
+            lr: 1e-4,
             style_weight: 1.0,
             consistency_weight: 1000.0,
             consistency_from: 0.5,
@@ -176,6 +191,9 @@ pub struct LossRecord {
 /// The stage's metrics.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DecoderPretrainReport {
+    /// The decoder training started from: `bundled:…`, `fresh` or the given file.
+    #[serde(default)]
+    pub started_from: String,
     pub steps: u64,
     pub resumed_from: u64,
     pub train_seconds: f64,
@@ -339,6 +357,33 @@ pub struct Inputs<'a> {
     pub init_decoder: Option<&'a Path>,
 }
 
+/// The decoder training starts from, and what it is (for the report): `init` when given, else
+/// as `cfg.start` says.
+fn starting_decoder(
+    init: Option<&Path>,
+    cfg: &DecoderPretrainConfig,
+    encoder: &EncoderWeights,
+    device: &Device,
+) -> Result<(Decoder, String)> {
+    if let Some(p) = init {
+        return Ok((Decoder::load(p, device)?.0, p.display().to_string()));
+    }
+    if cfg.start == DecoderStart::Bundled {
+        let (dec, trained_for) = Decoder::bundled(device)?;
+        if trained_for == encoder.source {
+            return Ok((dec, BUNDLED_DECODER_NAME.to_string()));
+        }
+        tracing::warn!(
+            encoder = %encoder.source,
+            "the bundled decoder was trained for another encoder: starting from a fresh decoder"
+        );
+    }
+    Ok((
+        Decoder::new(encoder.arch, cfg.seed, device)?,
+        "fresh".into(),
+    ))
+}
+
 /// Trains the decoder and the VAE; writes the outputs into `out`. Resumes from `out/ckpt`.
 pub fn run(
     inputs: Inputs,
@@ -381,10 +426,8 @@ pub fn run(
         ));
     }
     let views = crop_views(views)?;
-    let decoder = match init_decoder {
-        Some(p) => Decoder::load(p, device)?.0,
-        None => Decoder::new(encoder.arch, cfg.seed, device)?,
-    };
+    let (decoder, started_from) = starting_decoder(init_decoder, cfg, encoder, device)?;
+    tracing::info!(start = %started_from, "decoder_pretrain: starting decoder");
     if decoder.arch() != encoder.arch {
         return Err(EngineError::config(
             "decoder",
@@ -566,6 +609,7 @@ pub fn run(
     };
     write_json_atomic(&out.join("styles.json"), &styles_file)?;
     let report = DecoderPretrainReport {
+        started_from,
         steps: cfg.steps,
         resumed_from: training.start(),
         train_seconds,

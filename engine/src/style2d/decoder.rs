@@ -7,6 +7,10 @@
 //! Saved as safetensors: `decoder.{k}.weight` `[out, in, 3, 3]` and `decoder.{k}.bias` for
 //! k = 0, 1, … in forward order, with metadata `format` = `stylenerf-adain-decoder/1`, `arch`,
 //! and `encoder` (the encoder's source, to catch pairing a decoder with another encoder).
+//!
+//! A general decoder for the bundled encoder ships in the binary ([`Decoder::bundled`]): trained
+//! once, offline, on 502 photos and 153 paintings and drawings (`assets/decoder/PROVENANCE.md`),
+//! it is where every job's `decoder_pretrain` starts.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -24,6 +28,13 @@ use crate::rng::Rng;
 use crate::{EngineError, Result};
 
 const FORMAT_TAG: &str = "stylenerf-adain-decoder/1";
+
+/// Bytes of the bundled general decoder (see `assets/decoder/PROVENANCE.md`).
+const BUNDLED_DECODER: &[u8] =
+    include_bytes!("../../../assets/decoder/vgg16_hed_general.safetensors");
+
+/// Name the bundled decoder is reported under.
+pub const BUNDLED_DECODER_NAME: &str = "bundled:vgg16_hed_general";
 
 /// Sequential indices of the convolutions in AdaIN's `decoder.pth` (VGG-19 mirror).
 const ADAIN_DECODER_PTH: [usize; 9] = [1, 5, 8, 11, 14, 18, 21, 25, 28];
@@ -182,7 +193,30 @@ impl Decoder {
         if bytes.first() == Some(&0x80) {
             return Err(legacy_pickle_error(path));
         }
-        let meta = st_file::metadata(path, &bytes)?;
+        Self::from_safetensors(path, &bytes, device)
+    }
+
+    /// The general decoder bundled with the binary, with the source of the encoder it was
+    /// trained for (the bundled encoder's).
+    pub fn bundled(device: &Device) -> Result<(Self, String)> {
+        let (dec, encoder) =
+            Self::from_safetensors(Path::new(BUNDLED_DECODER_NAME), BUNDLED_DECODER, device)?;
+        let encoder = encoder.ok_or_else(|| {
+            EngineError::artifact(
+                Path::new(BUNDLED_DECODER_NAME),
+                "the bundled decoder does not record its encoder",
+            )
+        })?;
+        Ok((dec, encoder))
+    }
+
+    /// Reads the project's safetensors layout from `bytes` (read from `path`).
+    fn from_safetensors(
+        path: &Path,
+        bytes: &[u8],
+        device: &Device,
+    ) -> Result<(Self, Option<String>)> {
+        let meta = st_file::metadata(path, bytes)?;
         if meta.get("format").map(String::as_str) != Some(FORMAT_TAG) {
             return Err(EngineError::artifact(
                 path,
@@ -194,7 +228,7 @@ impl Decoder {
             .and_then(|a| VggArch::parse(a))
             .ok_or_else(|| EngineError::artifact(path, "decoder metadata lacks a valid `arch`"))?;
         let dec = Self::new(arch, 0, device)?;
-        let tensors = candle_core::safetensors::load_buffer(&bytes, device)?;
+        let tensors = candle_core::safetensors::load_buffer(bytes, device)?;
         dec.load_tensors(&tensors, path)?;
         Ok((dec, meta.get("encoder").cloned()))
     }
@@ -233,6 +267,77 @@ mod tests {
         assert!(!s.last().unwrap().relu && s[..8].iter().all(|s| s.relu));
     }
 
+    /// A 32×48 test image (the GPU trainer's self-test input, `scripts/train_decoder_gpu.py`).
+    fn test_image(dev: &Device) -> Tensor {
+        let (h, w) = (32, 48);
+        let mut v = vec![0f32; 3 * h * w];
+        for y in 0..h {
+            for x in 0..w {
+                let (u, t) = (x as f32 / (w - 1) as f32, y as f32 / (h - 1) as f32);
+                let px = [u, t, 0.5 + 0.5 * (6.0 * u * t).sin()];
+                for c in 0..3 {
+                    v[(c * h + y) * w + x] = (px[c] * 255.0).round() / 255.0;
+                }
+            }
+        }
+        Tensor::from_vec(v, (1, 3, h, w), dev).unwrap()
+    }
+
+    #[test]
+    fn the_bundled_decoder_is_trained_for_the_bundled_encoder() {
+        use crate::style2d::encoder::VggEncoder;
+        use crate::style2d::weights::EncoderWeights;
+        let dev = Device::Cpu;
+        let (dec, trained_with) = Decoder::bundled(&dev).unwrap();
+        let weights = EncoderWeights::bundled().unwrap();
+        assert_eq!(trained_with, weights.source);
+        let enc = VggEncoder::new(&weights, &dev).unwrap();
+        let x = test_image(&dev);
+        let y = dec.forward(&enc.relu4_1(&x).unwrap()).unwrap();
+        // Its output as recorded when the asset was added (f16 weights computed in f32: only
+        // the summation order may differ between machines).
+        let means = y.mean((0, 2, 3)).unwrap().to_vec1::<f32>().unwrap();
+        let row = y.get(0).unwrap().get(1).unwrap().get(16).unwrap();
+        let row = row.narrow(0, 0, 6).unwrap().to_vec1::<f32>().unwrap();
+        let recorded_means = [0.552_460_9, 0.525_724_9, 0.692_674_1];
+        let recorded_row = [
+            0.629_265_8,
+            0.621_904_4,
+            0.561_002_3,
+            0.621_704_6,
+            0.664_216_9,
+            0.615_587_8,
+        ];
+        for (got, want) in means
+            .iter()
+            .chain(&row)
+            .zip(recorded_means.iter().chain(&recorded_row))
+        {
+            assert!((got - want).abs() < 1e-3, "{means:?} {row:?}");
+        }
+        // It is a trained AdaIN decoder: stylizing one painted style with another's statistics
+        // lands far closer to that style (AdaIN's style loss) than a fresh decoder does.
+        let paint = |name: &str| {
+            let img = crate::style2d::painted::paint(name, 64).unwrap();
+            crate::style2d::images::hwc_to_tensor(img.as_raw(), 64, 64, &dev).unwrap()
+        };
+        let style_loss = |decoder: Decoder| {
+            let net = crate::style2d::network::AdaInNet {
+                encoder: enc.clone(),
+                decoder,
+            };
+            let target = net.style_target(&paint("mosaic")).unwrap();
+            let l = net.losses(&paint("waves"), &target).unwrap();
+            l.style.to_scalar::<f32>().unwrap()
+        };
+        let (trained, fresh) = (
+            style_loss(dec),
+            style_loss(Decoder::new(VggArch::Vgg16, 0, &dev).unwrap()),
+        );
+        println!("style loss {trained} fresh {fresh}");
+        assert!(trained < 0.5 * fresh, "{trained} vs {fresh}");
+    }
+
     #[test]
     fn shapes_save_and_load() {
         let dec = Decoder::new(VggArch::Vgg16, 1, &Device::Cpu).unwrap();
@@ -244,14 +349,7 @@ mod tests {
         dec.save(&p, "enc-x").unwrap();
         let (back, enc) = Decoder::load(&p, &Device::Cpu).unwrap();
         assert_eq!(enc.as_deref(), Some("enc-x"));
-        let d = (back.forward(&x).unwrap() - y)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let d = gradcheck::max_abs(&(back.forward(&x).unwrap() - y).unwrap());
         assert_eq!(d, 0.0);
         std::fs::write(&p, b"\x80\x02junk").unwrap();
         assert!(Decoder::load(&p, &Device::Cpu)

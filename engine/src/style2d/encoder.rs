@@ -20,7 +20,7 @@ use super::images;
 use super::pad::reflection_pad2d;
 use super::painted;
 use super::resample::max_pool2x2;
-use super::weights::EncoderWeights;
+use super::weights::{ChannelOrder, ConvWeights, EncoderWeights, Preprocess};
 
 /// The four exposed feature maps, shallow to deep: relu1_1, relu2_1, relu3_1, relu4_1.
 pub type Features = [Tensor; 4];
@@ -54,7 +54,7 @@ pub struct VggEncoder {
 
 impl VggEncoder {
     pub fn new(weights: &EncoderWeights, device: &Device) -> Result<Self> {
-        Self::build(weights, !weights.activations_normalised(), device)
+        Self::build(weights, !weights.normalised, device)
     }
 
     fn build(weights: &EncoderWeights, normalise: bool, device: &Device) -> Result<Self> {
@@ -103,6 +103,36 @@ impl VggEncoder {
     /// Where the weights came from.
     pub fn source(&self) -> &str {
         &self.source
+    }
+
+    /// The weights exactly as this encoder runs them: the source's preprocessing folded into
+    /// conv1_1 (the input is RGB in [0, 1]) and the activations normalised. Saved and loaded
+    /// again they give the same encoder; tools outside the engine (the GPU decoder trainer in
+    /// `scripts/`) read this file to see the features the engine sees.
+    pub fn weights(&self) -> Result<EncoderWeights> {
+        let convs = self
+            .layers
+            .iter()
+            .map(|l| {
+                Ok(ConvWeights {
+                    weight: l.weight.to_device(&Device::Cpu)?,
+                    bias: l.bias.flatten_all()?.to_device(&Device::Cpu)?,
+                })
+            })
+            .collect::<Result<_>>()?;
+        Ok(EncoderWeights {
+            arch: self.arch,
+            convs,
+            preprocess: Preprocess {
+                channel_order: ChannelOrder::Rgb,
+                scale: 1.0,
+                mean: [0.0; 3],
+                std: [1.0; 3],
+                conv: None,
+            },
+            normalised: true,
+            source: self.source.clone(),
+        })
     }
 
     /// Features of `x` (NCHW RGB in [0, 1]; H and W multiples of [`VggArch::STRIDE`]).
@@ -237,6 +267,7 @@ mod tests {
             arch,
             convs,
             preprocess,
+            normalised: false,
             source: "test".into(),
         }
     }
@@ -268,14 +299,7 @@ mod tests {
             .relu()
             .unwrap();
         let folded = enc.features(&x).unwrap()[0].clone();
-        let err = (explicit - folded)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let err = crate::style2d::gradcheck::max_abs(&(explicit - folded).unwrap());
         assert!(err < 2e-3, "folded conv1_1 differs by {err}");
     }
 
@@ -295,18 +319,47 @@ mod tests {
             assert!((mean(f) - 1.0).abs() < 1e-3, "tap {k}: mean {}", mean(f));
             // On another image the normalised feature is the raw one times a constant.
             let ratio = mean(&fnorm[k]) / mean(&fr[k]);
-            let err = ((&fr[k] * f64::from(ratio)).unwrap() - &fnorm[k])
-                .unwrap()
-                .abs()
-                .unwrap()
-                .max_all()
-                .unwrap()
-                .to_scalar::<f32>()
-                .unwrap();
+            let err = crate::style2d::gradcheck::max_abs(
+                &((&fr[k] * f64::from(ratio)).unwrap() - &fnorm[k]).unwrap(),
+            );
             assert!(
                 err < 1e-3 * mean(&fnorm[k]).max(1.0) * 10.0,
                 "tap {k}: {err}"
             );
+        }
+    }
+
+    #[test]
+    fn exported_weights_rebuild_the_same_encoder() {
+        let w = random_weights(VggArch::Vgg16, Preprocess::caffe([104.0, 117.0, 123.0]));
+        let enc = VggEncoder::new(&w, &Device::Cpu).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("effective.safetensors");
+        enc.weights()
+            .unwrap()
+            .save(&p, candle_core::DType::F32)
+            .unwrap();
+        let back = crate::style2d::weights::import(
+            &p,
+            crate::style2d::weights::WeightFormat::Auto,
+            Default::default(),
+        )
+        .unwrap();
+        assert!(back.normalised);
+        assert_eq!(back.source, "test");
+        let again = VggEncoder::new(&back, &Device::Cpu).unwrap();
+        let x = ((crate::style2d::gradcheck::random(&[1, 3, 16, 16], 11) + 1.0).unwrap() * 0.5)
+            .unwrap()
+            .to_dtype(candle_core::DType::F32)
+            .unwrap();
+        let max_abs = crate::style2d::gradcheck::max_abs;
+        for (a, b) in enc
+            .features(&x)
+            .unwrap()
+            .iter()
+            .zip(again.features(&x).unwrap())
+        {
+            assert!(max_abs(&(a - b).unwrap()) <= 1e-5 * max_abs(a).max(1.0));
         }
     }
 
@@ -333,14 +386,7 @@ mod tests {
             .with_conv_path(ConvPath::Candle)
             .relu4_1(&x)
             .unwrap();
-        let err = (&f[3] - plain)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let err = crate::style2d::gradcheck::max_abs(&(&f[3] - plain).unwrap());
         assert!(err < 1e-4);
         assert!(enc.features(&x.narrow(2, 0, 12).unwrap()).is_err());
     }

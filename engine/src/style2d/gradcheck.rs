@@ -13,6 +13,18 @@ pub fn random(shape: &[usize], seed: u64) -> Tensor {
     Tensor::from_vec(data, shape, &Device::Cpu).unwrap()
 }
 
+/// The largest absolute entry of `t` (of any float type), as f32.
+pub fn max_abs(t: &Tensor) -> f32 {
+    t.abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_dtype(DType::F32)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
 /// Checks d(Σ f(x) · r)/dx (r a fixed random weighting, so every output matters) against
 /// finite differences at every element of `x`. Panics with the worst mismatch.
 pub fn check(x: &Tensor, f: impl Fn(&Tensor) -> candle_core::Result<Tensor>) {

@@ -98,6 +98,7 @@ pub(super) fn read_keras_vgg16(path: &Path, bytes: Vec<u8>) -> Result<EncoderWei
         arch,
         convs,
         preprocess,
+        normalised: false,
         source: String::new(),
     })
 }

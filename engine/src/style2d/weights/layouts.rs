@@ -97,6 +97,14 @@ fn project(path: &Path, sd: &StateDict, meta: &HashMap<String, String>) -> Resul
     } else {
         None
     };
+    // Files written before the `activations` key: a 1×1 preprocessing convolution marks
+    // AdaIN's `vgg_normalised.pth`, whose activations are normalised.
+    let normalised = match meta.get("activations").map(String::as_str) {
+        Some("normalised") => true,
+        Some("raw") => false,
+        Some(v) => return Err(bad("activations", v)),
+        None => conv.is_some(),
+    };
     let convs = arch
         .convs()
         .iter()
@@ -120,6 +128,7 @@ fn project(path: &Path, sd: &StateDict, meta: &HashMap<String, String>) -> Resul
             std: triple("std")?,
             conv,
         },
+        normalised,
         source: meta.get("source").cloned().unwrap_or_default(),
     })
 }
@@ -153,6 +162,7 @@ fn torchvision(path: &Path, sd: &StateDict, tv: TorchvisionPreprocess) -> Result
         arch,
         convs,
         preprocess,
+        normalised: false,
         source: String::new(),
     })
 }
@@ -176,6 +186,7 @@ fn vgg_normalised(path: &Path, sd: &StateDict) -> Result<EncoderWeights> {
         arch,
         convs,
         preprocess: Preprocess::conv1x1(pre),
+        normalised: true,
         source: String::new(),
     })
 }

@@ -18,6 +18,7 @@
 //! | `scale` | an input pixel in [0, 1] is multiplied by this first (255 for Caffe weights) |
 //! | `mean` | three comma-separated values subtracted after scaling, in `channel_order` |
 //! | `std` | three values the result is divided by |
+//! | `activations` | `normalised` when each layer's activations already average about 1 (the encoder then leaves them as they are); `raw` or absent otherwise |
 //!
 //! So conv1_1 sees `((scale · x[order]) − mean) / std`, then `preprocess` if present, where
 //! `x` is an RGB image in [0, 1]. Every import stores the preprocessing of its source;
@@ -132,6 +133,10 @@ pub struct EncoderWeights {
     /// One entry per [`VggArch::convs`], in order.
     pub convs: Vec<ConvWeights>,
     pub preprocess: Preprocess,
+    /// The activations are already normalised to a mean of about 1 per layer (AdaIN's
+    /// `vgg_normalised.pth`, or an encoder written by [`crate::style2d::encoder::VggEncoder::weights`]);
+    /// the encoder normalises all other weights itself when it loads them.
+    pub normalised: bool,
     /// Human-readable origin (file, format, checksum).
     pub source: String,
 }
@@ -322,6 +327,10 @@ impl EncoderWeights {
             ("scale", p.scale.to_string()),
             ("mean", triple(p.mean)),
             ("std", triple(p.std)),
+            (
+                "activations",
+                if self.normalised { "normalised" } else { "raw" }.to_string(),
+            ),
         ];
         st_file::save(path, &tensors, &meta)
     }
@@ -361,13 +370,6 @@ impl EncoderWeights {
     }
 
     /// conv1_1 with [`Self::input_transform`] folded in: it takes RGB in [0, 1] directly.
-    /// Whether the activations are already normalised to a mean of about 1 per layer (AdaIN's
-    /// `vgg_normalised.pth`, recognised by its 1×1 preprocessing convolution); the encoder
-    /// normalises all other weights itself.
-    pub fn activations_normalised(&self) -> bool {
-        self.preprocess.conv.is_some()
-    }
-
     pub fn folded_first_conv(&self) -> Result<ConvWeights> {
         let (a, c) = self.input_transform()?;
         let first = &self.convs[0];
