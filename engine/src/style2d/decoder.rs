@@ -9,8 +9,8 @@
 //! and `encoder` (the encoder's source, to catch pairing a decoder with another encoder).
 //!
 //! A general decoder for the bundled encoder ships in the binary ([`Decoder::bundled`]): trained
-//! once, offline, on 502 photos and 153 paintings and drawings (`assets/decoder/PROVENANCE.md`),
-//! it is where every job's `decoder_pretrain` starts.
+//! once, offline, on 502 photos, 147 paintings and drawings and the three procedural styles
+//! (`assets/decoder/PROVENANCE.md`), it is where every job's `decoder_pretrain` starts.
 
 use std::collections::HashMap;
 use std::path::Path;
