@@ -24,7 +24,7 @@ pub enum StylizeCommand {
     /// Starts from the general decoder bundled with stylenerf (trained for the bundled encoder;
     /// a fresh one with another --encoder) or from --decoder, and fine-tunes it on this one
     /// content/style pair for --train-steps Adam steps of AdaIN's content and style losses
-    /// (a minute or two on a CPU at the default size). With the bundled encoder its colours come
+    /// (several minutes on a CPU at the default size). With the bundled encoder its colours come
     /// mostly from this fine-tuning: --train-steps 0 gives the general decoder's feed-forward
     /// result, with the painting's strokes but not its palette. A decoder trained by
     /// `decoder_pretrain` for this style, or AdaIN's decoder.pth with vgg_normalised.pth as
