@@ -152,24 +152,25 @@ fn image(a: ImageArgs) -> anyhow::Result<()> {
     let encoder = VggEncoder::new(&weights, &dev)?;
     let content = images::to_tensor(&image_io::load_rgb(&a.content)?, a.size, &dev)?;
     let style = images::to_tensor(&StyleImage::load(&a.style)?.image, a.size, &dev)?;
-    let (decoder, trained_with) = match &a.decoder {
-        Some(p) => Decoder::load(p, &dev)?,
-        None => {
-            let (d, trained_with) = Decoder::bundled(&dev)?;
-            if trained_with == encoder.source() {
-                (d, Some(trained_with))
-            } else {
-                tracing::info!("--encoder is not the bundled decoder's: starting from a fresh one");
-                (Decoder::new(weights.arch, a.seed, &dev)?, None)
+    let decoder = match &a.decoder {
+        Some(p) => {
+            let (d, trained_with) = Decoder::load(p, &dev)?;
+            if let Some(t) = trained_with.filter(|t| t != encoder.source()) {
+                tracing::warn!(
+                    "decoder was trained with encoder `{t}`, using `{}`",
+                    encoder.source()
+                );
             }
+            d
         }
+        None => match Decoder::bundled_for(encoder.source(), &dev)? {
+            Some(d) => d,
+            None => {
+                tracing::info!("--encoder is not the bundled decoder's: starting from a fresh one");
+                Decoder::new(weights.arch, a.seed, &dev)?
+            }
+        },
     };
-    if let Some(t) = trained_with.as_deref().filter(|t| *t != encoder.source()) {
-        tracing::warn!(
-            "decoder was trained with encoder `{t}`, using `{}`",
-            encoder.source()
-        );
-    }
     let net = AdaInNet { encoder, decoder };
     let target = net.style_target(&style)?;
     let steps = a.train_steps.unwrap_or(if a.decoder.is_some() {

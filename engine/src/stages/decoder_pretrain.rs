@@ -369,8 +369,7 @@ fn starting_decoder(
         return Ok((Decoder::load(p, device)?.0, p.display().to_string()));
     }
     if cfg.start == DecoderStart::Bundled {
-        let (dec, trained_for) = Decoder::bundled(device)?;
-        if trained_for == encoder.source {
+        if let Some(dec) = Decoder::bundled_for(&encoder.source, device)? {
             return Ok((dec, BUNDLED_DECODER_NAME.to_string()));
         }
         tracing::warn!(

@@ -299,6 +299,10 @@ mod tests {
             ),
             (vec!["mutual_learning.steps=-3"], "mutual_learning.steps"),
             (vec!["decoder_pretrain.lr=1e400"], "decoder_pretrain.lr"),
+            (
+                vec!["decoder_pretrain.start=bundle"],
+                "decoder_pretrain.start",
+            ),
             (vec!["render_views.chunk=0"], "render_views.chunk"),
             (vec!["nerf_pretrain.nope=1"], "nerf_pretrain.nope"),
             (vec!["steps=3"], "steps"),

@@ -210,6 +210,14 @@ impl Decoder {
         Ok((dec, encoder))
     }
 
+    /// The bundled general decoder when `encoder_source` (an encoder's
+    /// [`source`](crate::style2d::encoder::VggEncoder::source)) is the one it was trained for;
+    /// `None` for any other encoder, whose features it cannot decode.
+    pub fn bundled_for(encoder_source: &str, device: &Device) -> Result<Option<Self>> {
+        let (dec, trained_for) = Self::bundled(device)?;
+        Ok((trained_for == encoder_source).then_some(dec))
+    }
+
     /// Reads the project's safetensors layout from `bytes` (read from `path`).
     fn from_safetensors(
         path: &Path,

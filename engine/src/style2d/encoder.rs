@@ -347,6 +347,22 @@ mod tests {
         .unwrap();
         assert!(back.normalised);
         assert_eq!(back.source, "test");
+        // A file whose `activations` says something else is refused, naming the key.
+        let mut bytes = std::fs::read(&p).unwrap();
+        let at = bytes.windows(10).position(|w| w == b"normalised").unwrap();
+        bytes[at..at + 10].copy_from_slice(b"normalized");
+        std::fs::write(&p, bytes).unwrap();
+        let err = crate::style2d::weights::import(
+            &p,
+            crate::style2d::weights::WeightFormat::Auto,
+            Default::default(),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("`activations`") && err.contains("normalized"),
+            "{err}"
+        );
         let again = VggEncoder::new(&back, &Device::Cpu).unwrap();
         let x = ((crate::style2d::gradcheck::random(&[1, 3, 16, 16], 11) + 1.0).unwrap() * 0.5)
             .unwrap()
