@@ -12,7 +12,6 @@
 //! The tests run one at a time (they share two CPU cores in CI) and wait on conditions with
 //! deadlines rather than fixed sleeps.
 
-use std::future::Future;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -20,9 +19,9 @@ use std::time::{Duration, Instant};
 use serde_json::json;
 use stylenerf_client::{pb, Client, Input, JobSpec, WatchOptions};
 use stylenerf_engine::image_io::save_rgb_png;
-use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::style2d::painted;
 use stylenerf_server::{Coordinator, CoordinatorConfig, CoordinatorHandle};
+use stylenerf_testkit::{eventually, tiny_scene};
 
 /// One test at a time: each runs training processes.
 static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
@@ -119,15 +118,7 @@ impl Cluster {
     /// Submits a `tiny` job on a 32×32, 8-view scene with one painted style.
     async fn submit(&self, overrides: serde_json::Value) -> String {
         let scene = self.dir.path().join("scene");
-        generate(
-            &GenerateOptions {
-                size: 32,
-                views: 8,
-                ..Default::default()
-            },
-            &scene,
-        )
-        .unwrap();
+        tiny_scene(&scene);
         let style = self.dir.path().join("waves.png");
         let image = painted::paint("waves", 64).unwrap();
         save_rgb_png(&style, 64, 64, image.as_raw()).unwrap();
@@ -146,22 +137,6 @@ impl Cluster {
         if let Some(coordinator) = self.coordinator.take() {
             coordinator.shutdown().await.unwrap();
         }
-    }
-}
-
-/// Polls `f` every 100 ms until it returns `Some`, within `timeout`.
-async fn eventually<T, F: Future<Output = Option<T>>>(
-    what: &str,
-    timeout: Duration,
-    mut f: impl FnMut() -> F,
-) -> T {
-    let deadline = Instant::now() + timeout;
-    loop {
-        if let Some(t) = f().await {
-            return t;
-        }
-        assert!(Instant::now() < deadline, "{what}: not within {timeout:?}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 

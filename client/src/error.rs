@@ -101,6 +101,14 @@ pub(crate) fn error_chain(err: &(dyn std::error::Error + 'static)) -> String {
     parts.join(": ")
 }
 
+impl From<stylenerf_proto::bearer::InvalidToken> for ClientError {
+    fn from(e: stylenerf_proto::bearer::InvalidToken) -> Self {
+        ClientError::Unauthenticated {
+            message: e.to_string(),
+        }
+    }
+}
+
 impl ClientError {
     /// Maps a gRPC status from the coordinator at `endpoint`.
     pub fn from_status(status: Status, endpoint: &str) -> Self {

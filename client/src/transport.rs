@@ -6,10 +6,7 @@
 use crate::error::{error_chain, ClientError, Result};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-use tonic::metadata::{Ascii, MetadataValue};
-use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
-use tonic::{Request, Status};
 
 /// The coordinator's default listen address (`stylenerf coordinator` without `--listen`).
 pub const DEFAULT_ENDPOINT: &str = "http://127.0.0.1:50051";
@@ -144,38 +141,8 @@ pub async fn connect_channel(options: &ConnectOptions) -> Result<(Channel, Strin
     Ok((channel, url))
 }
 
-/// Adds `authorization: Bearer <token>` to every call (nothing when there is no token).
-#[derive(Clone, Debug, Default)]
-pub struct Bearer(Option<MetadataValue<Ascii>>);
-
-impl Bearer {
-    /// An interceptor for `token`; fails on characters that cannot go in an HTTP header.
-    pub fn new(token: Option<&str>) -> Result<Self> {
-        match token.map(str::trim).filter(|t| !t.is_empty()) {
-            None => Ok(Bearer(None)),
-            Some(token) => format!("Bearer {token}")
-                .parse()
-                .map(|value| Bearer(Some(value)))
-                .map_err(|_| ClientError::Unauthenticated {
-                    message: "the token holds characters that cannot be sent in a header".into(),
-                }),
-        }
-    }
-}
-
-impl tonic::service::Interceptor for Bearer {
-    fn call(&mut self, mut request: Request<()>) -> std::result::Result<Request<()>, Status> {
-        if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
-}
-
-/// A channel whose calls carry the bearer token.
-pub type AuthedChannel = InterceptedService<Channel, Bearer>;
+/// The bearer-token interceptor and the channel type whose calls carry it.
+pub use stylenerf_proto::bearer::{Authed as AuthedChannel, Bearer};
 
 #[cfg(test)]
 mod tests {
@@ -193,12 +160,5 @@ mod tests {
         );
         let err = endpoint(&ConnectOptions::new("ftp://x:1", None)).unwrap_err();
         assert!(err.to_string().contains("unsupported scheme"), "{err}");
-    }
-
-    #[test]
-    fn tokens_must_fit_a_header() {
-        assert!(Bearer::new(Some("abc\n")).is_ok());
-        assert!(Bearer::new(Some("ab\u{7}c")).is_err());
-        assert!(Bearer::new(Some("  ")).unwrap().0.is_none());
     }
 }

@@ -6,55 +6,26 @@
 use futures::StreamExt;
 use std::path::Path;
 use std::time::Duration;
-use stylenerf_client::transport::{connect_channel, Bearer};
 use stylenerf_client::{
-    pb, Client, ClientError, ConnectOptions, Input, JobSpec, ListFilter, RenderSpec, WatchOptions,
+    pb, Client, ClientError, Input, JobSpec, ListFilter, RenderSpec, WatchOptions,
 };
-use stylenerf_server::{
-    AuthConfig, Coordinator, CoordinatorConfig, CoordinatorHandle, Role, TokenEntry,
+use stylenerf_server::CoordinatorHandle;
+use stylenerf_testkit::{
+    config, fake_output, png, FakeWorker, ALICE, BOB, SCENE_TRANSFORMS, WORKER,
 };
-
-const ALICE: &str = "client-alice-0123456789";
-const BOB: &str = "client-bob-0123456789ab";
-const WORKER: &str = "worker-token-0123456789";
 
 async fn start(dir: &Path) -> CoordinatorHandle {
-    let entry = |role, name: &str, token: &str| TokenEntry {
-        role,
-        name: name.into(),
-        token: token.into(),
-    };
-    let mut config = CoordinatorConfig::local(dir);
-    config.auth = AuthConfig::Tokens(vec![
-        entry(Role::Client, "alice", ALICE),
-        entry(Role::Client, "bob", BOB),
-        entry(Role::Worker, "worker", WORKER),
-    ]);
-    config.reaper_interval = Duration::from_millis(50);
-    config.max_lease_wait = Duration::from_secs(5);
-    Coordinator::start(config)
-        .await
-        .expect("coordinator starts")
+    stylenerf_testkit::start(config(dir)).await
 }
 
 fn write_png(path: &Path, size: u32) {
-    let image = image::RgbImage::from_fn(size, size, |x, y| {
-        image::Rgb([(x * 30) as u8, (y * 30) as u8, 128])
-    });
-    image.save(path).unwrap();
+    std::fs::write(path, png(size, size)).unwrap();
 }
 
 /// A NeRF-synthetic scene folder: `transforms_train.json` and two images.
 fn write_scene(dir: &Path) {
     std::fs::create_dir_all(dir.join("train")).unwrap();
-    std::fs::write(
-        dir.join("transforms_train.json"),
-        br#"{"camera_angle_x": 0.69, "frames": [
-            {"file_path": "./train/r_0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]},
-            {"file_path": "./train/r_1", "transform_matrix": [[0,0,1,4],[0,1,0,0],[-1,0,0,0],[0,0,0,1]]}
-        ]}"#,
-    )
-    .unwrap();
+    std::fs::write(dir.join("transforms_train.json"), SCENE_TRANSFORMS).unwrap();
     write_png(&dir.join("train/r_0.png"), 4);
     write_png(&dir.join("train/r_1.png"), 4);
 }
@@ -77,117 +48,6 @@ fn job_spec(root: &Path) -> JobSpec {
     spec.overrides
         .insert("nerf_pretrain.steps".into(), 25.into());
     spec
-}
-
-/// A worker that completes tasks with one stored object each, through the worker APIs.
-struct FakeWorker {
-    id: String,
-    workers:
-        pb::worker_service_client::WorkerServiceClient<stylenerf_client::transport::AuthedChannel>,
-    artifacts: pb::artifact_service_client::ArtifactServiceClient<
-        stylenerf_client::transport::AuthedChannel,
-    >,
-}
-
-impl FakeWorker {
-    async fn register(endpoint: &str) -> Self {
-        let (channel, _) = connect_channel(&ConnectOptions::new(endpoint, None))
-            .await
-            .unwrap();
-        let bearer = Bearer::new(Some(WORKER)).unwrap();
-        let mut workers = pb::worker_service_client::WorkerServiceClient::with_interceptor(
-            channel.clone(),
-            bearer.clone(),
-        );
-        let artifacts =
-            pb::artifact_service_client::ArtifactServiceClient::with_interceptor(channel, bearer);
-        let id = workers
-            .register_worker(pb::RegisterWorkerRequest {
-                name: "fake".into(),
-                capabilities: Some(pb::Capabilities {
-                    device: "cpu".into(),
-                    memory_bytes: 0,
-                    labels: vec![],
-                    max_tasks: 4,
-                }),
-                worker_id: String::new(),
-            })
-            .await
-            .unwrap()
-            .into_inner()
-            .worker_id;
-        FakeWorker {
-            id,
-            workers,
-            artifacts,
-        }
-    }
-
-    /// Leases the next task, reports progress, stores `result.bin` and completes it.
-    async fn run_one(&mut self) -> (pb::TaskAssignment, Vec<u8>) {
-        let task = self
-            .workers
-            .lease_task(pb::LeaseTaskRequest {
-                worker_id: self.id.clone(),
-                wait_ms: 5000,
-                free_memory_bytes: 0,
-            })
-            .await
-            .unwrap()
-            .into_inner()
-            .task
-            .expect("a task is ready");
-        self.workers
-            .heartbeat(pb::HeartbeatRequest {
-                worker_id: self.id.clone(),
-                task_id: task.task_id,
-                fencing_token: task.fencing_token,
-                progress: Some(pb::Progress {
-                    step: 5,
-                    total: 10,
-                    loss: 0.25,
-                    metrics: [("psnr".to_string(), 24.5)].into(),
-                    eta_seconds: 3.0,
-                    message: "training".into(),
-                }),
-            })
-            .await
-            .unwrap();
-        let data = format!("output of task {}", task.task_id)
-            .repeat(1000)
-            .into_bytes();
-        let key = format!("{}result.bin", task.output_prefix);
-        let sha = hex::encode(<sha2::Sha256 as sha2::Digest>::digest(&data));
-        let messages = vec![
-            pb::PutObjectChunk {
-                part: Some(pb::put_object_chunk::Part::Header(pb::PutObjectHeader {
-                    key,
-                    size: data.len() as u64,
-                    sha256: sha,
-                })),
-            },
-            pb::PutObjectChunk {
-                part: Some(pb::put_object_chunk::Part::Data(data.clone())),
-            },
-        ];
-        let artifact = self
-            .artifacts
-            .put_object(tokio_stream::iter(messages))
-            .await
-            .unwrap()
-            .into_inner();
-        self.workers
-            .complete_task(pb::CompleteTaskRequest {
-                worker_id: self.id.clone(),
-                task_id: task.task_id,
-                fencing_token: task.fencing_token,
-                outputs: vec![artifact],
-                metrics: Default::default(),
-            })
-            .await
-            .unwrap();
-        (task, data)
-    }
 }
 
 #[tokio::test]
@@ -331,8 +191,9 @@ async fn artifacts_download_and_render() {
         .await
         .unwrap();
 
-    let mut worker = FakeWorker::register(&coordinator.endpoint()).await;
-    let (task, data) = worker.run_one().await;
+    let mut worker = FakeWorker::register(&coordinator, "cpu", 0).await;
+    let task = worker.run_one().await;
+    let data = fake_output(&task);
     assert_eq!(
         task.output_prefix,
         format!("jobs/{}/nerf_pretrain/", job.id)
@@ -351,7 +212,7 @@ async fn artifacts_download_and_render() {
         .and_then(|e| e.progress.clone())
         .expect("a progress event");
     assert_eq!((progress.step, progress.total), (5, 10));
-    assert_eq!(progress.metrics["psnr"], 24.5);
+    assert_eq!(progress.metrics["psnr"], 25.0);
 
     let artifacts = client.artifacts(&job.id, "nerf_pretrain/").await.unwrap();
     assert_eq!(artifacts.len(), 1);
@@ -434,7 +295,7 @@ async fn artifacts_download_and_render() {
     });
     tokio::time::sleep(Duration::from_millis(200)).await;
     assert!(!waiter.is_finished(), "the job is running again");
-    let (task, _) = worker.run_one().await;
+    let task = worker.run_one().await;
     assert_eq!(task.task_id, render.id);
     let done = waiter.await.unwrap().unwrap();
     assert_eq!(done.state, pb::JobState::Succeeded as i32);

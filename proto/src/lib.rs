@@ -2,6 +2,7 @@
 //! artifact services, generated at build time from `proto/stylenerf/v1/*.proto` (see those
 //! files for the documentation of every message and RPC).
 
+pub mod bearer;
 pub mod chunks;
 
 /// Generated code of the `stylenerf.v1` package.

@@ -9,11 +9,10 @@ use sha2::{Digest, Sha256};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use stylenerf_proto::bearer::{Authed, Bearer};
 use stylenerf_proto::v1 as pb;
 use stylenerf_proto::v1::job_service_client::JobServiceClient;
 use stylenerf_proto::v1::worker_service_client::WorkerServiceClient;
-use tonic::metadata::{Ascii, MetadataValue};
-use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
 /// Options of the coordinator benchmark.
@@ -88,29 +87,12 @@ impl std::fmt::Display for BenchReport {
 const CLIENT_TOKEN: &str = "bench-client-token-0000";
 const WORKER_TOKEN: &str = "bench-worker-token-0000";
 
-#[derive(Clone)]
-struct Bearer(MetadataValue<Ascii>);
-
-impl tonic::service::Interceptor for Bearer {
-    fn call(
-        &mut self,
-        mut request: tonic::Request<()>,
-    ) -> Result<tonic::Request<()>, tonic::Status> {
-        request
-            .metadata_mut()
-            .insert("authorization", self.0.clone());
-        Ok(request)
-    }
-}
-
-type Authed = InterceptedService<Channel, Bearer>;
-
 async fn connect(endpoint: &str, token: &str) -> anyhow::Result<(Channel, Bearer)> {
     let channel = Channel::from_shared(endpoint.to_string())?
         .tcp_nodelay(true)
         .connect()
         .await?;
-    Ok((channel, Bearer(format!("Bearer {token}").parse()?)))
+    Ok((channel, Bearer::new(Some(token))?))
 }
 
 async fn job_client(endpoint: &str) -> anyhow::Result<JobServiceClient<Authed>> {

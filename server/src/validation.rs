@@ -421,17 +421,7 @@ pub fn validate_style_image(bytes: &[u8], limits: &Limits) -> Result<ImageSummar
 mod tests {
     use super::*;
 
-    fn archive(entries: &[(&str, &[u8])]) -> Vec<u8> {
-        let mut builder = tar::Builder::new(Vec::new());
-        for (path, data) in entries {
-            let mut header = tar::Header::new_gnu();
-            header.set_size(data.len() as u64);
-            header.set_mode(0o644);
-            header.set_cksum();
-            builder.append_data(&mut header, path, *data).unwrap();
-        }
-        builder.into_inner().unwrap()
-    }
+    use stylenerf_testkit::tar_of as archive;
 
     const TRANSFORMS: &[u8] = br#"{"camera_angle_x": 0.7, "frames": [
         {"file_path": "./train/r_0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}

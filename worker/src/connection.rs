@@ -6,43 +6,12 @@ use std::path::Path;
 use anyhow::Context;
 use stylenerf_proto::v1::artifact_service_client::ArtifactServiceClient;
 use stylenerf_proto::v1::worker_service_client::WorkerServiceClient;
-use tonic::metadata::{Ascii, MetadataValue};
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
-use tonic::{Request, Status};
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
 
 /// Largest message accepted from the coordinator (download chunks are 1 MiB).
 const MAX_MESSAGE_BYTES: usize = 16 << 20;
 
-/// Adds the bearer token to every call.
-#[derive(Clone)]
-pub struct Bearer(Option<MetadataValue<Ascii>>);
-
-impl Bearer {
-    /// `authorization: Bearer <token>` on every call; `None` sends nothing.
-    pub fn new(token: Option<&str>) -> anyhow::Result<Self> {
-        Ok(Self(
-            token
-                .map(|t| format!("Bearer {t}").parse())
-                .transpose()
-                .context("the token contains characters not allowed in a header")?,
-        ))
-    }
-}
-
-impl tonic::service::Interceptor for Bearer {
-    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
-        if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
-}
-
-/// A channel that authenticates with the worker token.
-pub type Authed = InterceptedService<Channel, Bearer>;
+pub use stylenerf_proto::bearer::{Authed, Bearer};
 
 /// The two services a worker calls.
 #[derive(Clone)]
@@ -82,7 +51,7 @@ impl Clients {
         // Connected on first use and reconnected after a drop: a worker may start before its
         // coordinator (the calls then wait, see `retry::patient`).
         let channel = ep.connect_lazy();
-        let bearer = Bearer::new(token)?;
+        let bearer = Bearer::new(token).context("--token")?;
         Ok(Self {
             workers: WorkerServiceClient::with_interceptor(channel.clone(), bearer.clone())
                 .max_decoding_message_size(MAX_MESSAGE_BYTES),

@@ -87,7 +87,7 @@ async fn a_second_worker_resumes_from_the_first_ones_checkpoint() {
     let job = submit(&coordinator, dir.path(), overrides, 0).await;
     let first = spawn_worker(worker_config(&coordinator, dir.path())).await;
     let ckpt = format!("jobs/{job}/nerf_pretrain/ckpt/");
-    eventually(Duration::from_secs(60), || async {
+    eventually("a checkpoint stored", Duration::from_secs(60), || async {
         let keys = list(&coordinator, &ckpt).await;
         keys.iter().any(|k| k.ends_with(".json")).then_some(())
     })
@@ -116,7 +116,7 @@ async fn a_second_worker_resumes_from_the_first_ones_checkpoint() {
     assert_eq!(attempt, 2);
     assert!(resumed_from >= 10, "resumed from step {resumed_from}");
     // The progress the coordinator sees says so too.
-    eventually(Duration::from_secs(30), || async {
+    eventually("the resume reported", Duration::from_secs(30), || async {
         let job = get_job(&coordinator, &job).await;
         let progress = job.tasks[0].progress.clone().unwrap_or_default();
         progress
@@ -152,7 +152,7 @@ async fn a_truncated_newest_checkpoint_costs_one_interval_not_the_job() {
             .parse()
             .ok()
     };
-    eventually(Duration::from_secs(60), || async {
+    eventually("checkpoints stored", Duration::from_secs(60), || async {
         let steps = list(&coordinator, &ckpt)
             .await
             .iter()

@@ -1,8 +1,8 @@
 //! Roles and tokens: clients see only their own jobs, admins see all, workers only reach the
 //! worker services, and missing or wrong tokens are refused.
 
-use crate::support::*;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 use tonic::Code;
 
 #[tokio::test]

@@ -1,10 +1,10 @@
 //! Signed artifact URLs: `GetArtifactUrl` gives a caller who may read an object a URL that any
 //! HTTP client can GET without a token, until it expires; altered or expired links are refused.
 
-use crate::support::*;
 use std::io::{Read, Write};
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 /// `GET url` over HTTP/1.1: (status code, body).
 fn http_get(url: &str) -> (u16, Vec<u8>) {

@@ -2,8 +2,8 @@
 //! worker's lease and objects, names that carry terminal escapes, odd keys and offsets, and
 //! archives as people make them (`tar -C dir .`, gzip, duplicates, deep or absolute paths).
 
-use crate::support::*;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 use tonic::Code;
 
 fn object(key: &str) -> Option<pb::InputRef> {

@@ -1,10 +1,10 @@
 //! Lease expiry and requeue, fencing tokens against stale workers, running out of attempts,
 //! retryable failures, and cancellation reaching a heartbeat.
 
-use crate::support::*;
 use futures::StreamExt;
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 #[tokio::test]
 async fn expired_lease_is_requeued_and_stale_worker_is_fenced_off() {

@@ -1,9 +1,9 @@
 //! A job through all five stages with a fake worker, watched with replay; artifacts listed and
 //! downloaded; a further render; idempotent creation; capability matching; health.
 
-use crate::support::*;
 use futures::StreamExt;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 const STAGES: [pb::Stage; 5] = [
     pb::Stage::NerfPretrain,
@@ -318,13 +318,7 @@ async fn a_job_that_failed_in_its_final_render_renders_again() {
     let unknown = client.create_job(request.clone()).await.unwrap_err();
     assert_eq!(bad_fields(&unknown), ["camera_path.kind"]);
     request.camera_path = None;
-    let job = client
-        .create_job(request)
-        .await
-        .unwrap()
-        .into_inner()
-        .job
-        .unwrap();
+    let job = create(&mut client, request).await;
     let mut worker = FakeWorker::register(&server, "cpu", 0).await;
     for _ in 0..4 {
         worker.run_one().await;

@@ -1,6 +1,6 @@
 //! Integration tests of the coordinator over real gRPC on loopback, with real SQLite files and
-//! local object stores in temporary directories. `support` starts coordinators and provides
-//! authenticated clients, test inputs and a fake worker.
+//! local object stores in temporary directories. `stylenerf-testkit` starts the coordinators and
+//! provides authenticated clients, test inputs and a fake worker.
 
 mod auth;
 mod downloads;
@@ -15,7 +15,6 @@ mod quotas;
 mod reflection;
 mod restart;
 mod retention;
-mod support;
 mod tls;
 mod upload_sessions;
 mod uploads;

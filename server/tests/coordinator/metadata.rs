@@ -1,8 +1,8 @@
 //! Job metadata: the integrator's key-value pairs are kept with the job, returned with it,
 //! filter `ListJobs`, and are checked at submission.
 
-use crate::support::*;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 #[tokio::test]
 async fn metadata_is_kept_filtered_and_checked() {
@@ -18,13 +18,7 @@ async fn metadata_is_kept_filtered_and_checked() {
     for customer in ["42", "7"] {
         let mut request = job_request(&mut alice).await;
         request.metadata = pairs(&[("customer", customer), ("order/id", "A-17")]);
-        let job = alice
-            .create_job(request)
-            .await
-            .unwrap()
-            .into_inner()
-            .job
-            .unwrap();
+        let job = create(&mut alice, request).await;
         assert_eq!(job.metadata["customer"], customer);
         ids.push(job.id);
     }

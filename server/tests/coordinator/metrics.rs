@@ -2,10 +2,10 @@
 //! device class and label set, per-RPC latency with bounded method names, queue wait, process
 //! metrics, build info, and `/healthz`.
 
-use crate::support::*;
 use std::io::{Read, Write};
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 /// `GET path` on the metrics port: (status line, body).
 fn get(addr: std::net::SocketAddr, path: &str) -> (String, String) {

@@ -1,9 +1,9 @@
 //! Scheduling by priority (higher first, then the longest-waiting) and job deadlines (an
 //! unfinished job fails when its deadline passes); both checked at submission.
 
-use crate::support::*;
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 fn now_ms() -> i64 {
     std::time::SystemTime::now()
@@ -21,13 +21,7 @@ async fn higher_priority_jobs_are_leased_first_and_late_jobs_fail() {
     for priority in [0, 10, -5] {
         let mut request = job_request(&mut alice).await;
         request.priority = priority;
-        let job = alice
-            .create_job(request)
-            .await
-            .unwrap()
-            .into_inner()
-            .job
-            .unwrap();
+        let job = create(&mut alice, request).await;
         assert_eq!(job.priority, priority);
         ids.push(job.id);
     }
@@ -41,13 +35,7 @@ async fn higher_priority_jobs_are_leased_first_and_late_jobs_fail() {
     // A deadline that passes while the job waits fails it, saying why.
     let mut request = job_request(&mut alice).await;
     request.deadline_at_ms = now_ms() + 300;
-    let late = alice
-        .create_job(request)
-        .await
-        .unwrap()
-        .into_inner()
-        .job
-        .unwrap();
+    let late = create(&mut alice, request).await;
     let mut failed = None;
     for _ in 0..100 {
         let job = get_job(&mut alice, &late.id).await;

@@ -2,10 +2,10 @@
 //! task's progress is stored as an event only once per `progress_event_interval` (the first
 //! progress of a lease always is).
 
-use crate::support::*;
 use futures::StreamExt;
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 #[tokio::test]
 async fn progress_events_are_throttled_but_watchers_see_every_heartbeat() {

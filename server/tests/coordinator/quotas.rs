@@ -2,10 +2,10 @@
 //! (an owner of its own may have another limit), and stored bytes bound uploads, resumable
 //! appends and new jobs until finished jobs are deleted.
 
-use crate::support::*;
 use std::collections::HashMap;
 use stylenerf_server::proto::v1 as pb;
 use stylenerf_server::Quota;
+use stylenerf_testkit::*;
 use tonic::Code;
 
 #[tokio::test]

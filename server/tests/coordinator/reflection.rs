@@ -3,7 +3,7 @@
 //! services are listed, and the error-detail messages our statuses carry
 //! (`google.rpc.BadRequest`) resolve to their file descriptor.
 
-use crate::support::*;
+use stylenerf_testkit::*;
 
 /// Asks one reflection version: (services listed, descriptors of `google.rpc.BadRequest`).
 macro_rules! ask {

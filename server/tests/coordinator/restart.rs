@@ -1,9 +1,9 @@
 //! A coordinator restarted on the same SQLite file and store mid-job loses nothing: the job,
 //! its finished stages, a live lease (the worker's token still works) and the event log.
 
-use crate::support::*;
 use futures::StreamExt;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 #[tokio::test]
 async fn restart_mid_job_loses_nothing() {

@@ -2,10 +2,10 @@
 //! owner or an admin, only once it is finished), and `--retention-days` does the same by age,
 //! uploads included.
 
-use crate::support::*;
 use std::path::Path;
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 /// Files under `dir` (recursively).
 fn files_under(dir: &Path) -> usize {

@@ -3,10 +3,10 @@
 //! trusts the certificate; a client that does not trust it, or that speaks plaintext, gets no
 //! answer.
 
-use crate::support::*;
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
 use stylenerf_server::TlsConfig;
+use stylenerf_testkit::*;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig};
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;

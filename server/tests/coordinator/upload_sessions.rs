@@ -2,11 +2,11 @@
 //! coordinator restart, appends must continue at the committed size, the finish checks the
 //! SHA-256 and is repeatable, sessions are private, bounded per owner and swept when idle.
 
-use crate::support::*;
 use futures::StreamExt;
 use std::path::Path;
 use std::time::{Duration, Instant};
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 use tonic::Code;
 
 fn resume(session_id: &str, offset: u64) -> pb::UploadSessionChunk {

@@ -2,8 +2,8 @@
 //! archive members, links, missing scene files, bad checksums, sizes over the limits or not
 //! matching the header, and style images that do not decode.
 
-use crate::support::*;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 use tonic::Code;
 
 /// A tar whose single member has a raw (unchecked) name and type.

@@ -1,9 +1,9 @@
 //! `WatchJobs`: one stream of every event of the caller's jobs, replayed after a `seq` and then
 //! live — never another tenant's.
 
-use crate::support::*;
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 /// Reads events until `done` says so (or fails after 10 s).
 async fn until(

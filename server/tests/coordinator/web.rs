@@ -2,9 +2,9 @@
 //! proto JSON calls (`POST /stylenerf.v1.JobService/<Method>`) with Connect-style errors and
 //! the same tenancy as gRPC, and browser uploads (`POST /upload`) with the optional checksum.
 
-use crate::support::*;
 use serde_json::{json, Value};
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 
 struct Web {
     base: String,

@@ -2,12 +2,12 @@
 //! chosen event, signed per Standard Webhooks with the job's secret, retried after the failure;
 //! the delivery log says so; private destinations are refused unless allowed.
 
-use crate::support::*;
 use base64::Engine;
 use hmac::{KeyInit, Mac};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use stylenerf_server::proto::v1 as pb;
+use stylenerf_testkit::*;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// One request the receiver got: its headers (lower-case names) and body.
@@ -200,7 +200,7 @@ async fn webhooks_deliver_signed_events_and_retry_failures() {
 
     // Private destinations need the operator's permission; other schemes are refused.
     server.shutdown().await.unwrap();
-    let server = start(super::support::config(dir.path())).await;
+    let server = start(stylenerf_testkit::config(dir.path())).await;
     let mut alice = jobs_client(&server, Some(ALICE)).await;
     for (target, needle) in [
         (url.as_str(), "loopback or private"),

@@ -1,28 +1,23 @@
-//! Test support: an embedded coordinator (real SQLite file, token auth, fast heartbeats) in a
-//! temp dir, a generated 32×32 scene and a style image uploaded as a job, workers configured
-//! for tests, and helpers to wait for worker events and job states.
+//! Test support of the real worker: a coordinator from `stylenerf-testkit` with fast
+//! heartbeats, a generated 32×32 scene and a style image uploaded as a job, workers configured
+//! for tests, and helpers to wait for worker events and look at jobs and the store.
 
 #![allow(dead_code)]
 
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_server::proto::v1 as pb;
-use stylenerf_server::proto::v1::artifact_service_client::ArtifactServiceClient;
 use stylenerf_server::proto::v1::job_service_client::JobServiceClient;
-use stylenerf_server::{
-    AuthConfig, Coordinator, CoordinatorConfig, CoordinatorHandle, Role, TokenEntry,
+use stylenerf_server::CoordinatorHandle;
+pub use stylenerf_testkit::eventually;
+use stylenerf_testkit::{
+    artifact_client, config, jobs_client, png, start, tar_dir, tiny_scene, upload, uploaded,
+    Authed, ADMIN, ALICE, WORKER,
 };
-use stylenerf_worker::connection::{Authed, Bearer};
 use stylenerf_worker::{RunSummary, Worker, WorkerConfig, WorkerEvent, WorkerHandle};
 use tokio::sync::broadcast;
 use tokio::task::JoinHandle;
-
-pub const CLIENT: &str = "client-token-0123456789";
-pub const WORKER: &str = "worker-token-0123456789";
-/// The tests look into the store as an operator: workers reach only the jobs they hold.
-pub const ADMIN: &str = "admin-token-0123456789a";
 
 pub fn init_logs() {
     let _ = tracing_subscriber::fmt()
@@ -36,109 +31,31 @@ pub fn init_logs() {
 
 /// A coordinator under `dir` with heartbeats every 200 ms.
 pub async fn coordinator(dir: &Path) -> CoordinatorHandle {
-    coordinator_on(dir, CoordinatorConfig::local(dir).listen).await
+    coordinator_on(dir, config(dir).listen).await
 }
 
 /// [`coordinator`] listening on `listen`.
 pub async fn coordinator_on(dir: &Path, listen: std::net::SocketAddr) -> CoordinatorHandle {
     init_logs();
-    let mut config = CoordinatorConfig::local(dir);
+    let mut config = config(dir);
     config.listen = listen;
-    let entry = |role, name: &str, token: &str| TokenEntry {
-        role,
-        name: name.into(),
-        token: token.into(),
-    };
-    config.auth = AuthConfig::Tokens(vec![
-        entry(Role::Client, "alice", CLIENT),
-        entry(Role::Worker, "workers", WORKER),
-        entry(Role::Admin, "operator", ADMIN),
-    ]);
     config.heartbeat_interval = Duration::from_millis(200);
     config.lease_ttl = Duration::from_secs(10);
     config.reaper_interval = Duration::from_millis(100);
     config.max_lease_wait = Duration::from_secs(2);
-    Coordinator::start(config)
-        .await
-        .expect("coordinator starts")
+    start(config).await
 }
 
-async fn channel(handle: &CoordinatorHandle) -> tonic::transport::Channel {
-    tonic::transport::Channel::from_shared(handle.endpoint())
-        .unwrap()
-        .connect()
-        .await
-        .unwrap()
-}
-
-fn bearer(token: &str) -> Bearer {
-    Bearer::new(Some(token)).unwrap()
-}
-
+/// A client with the token of [`ALICE`].
 pub async fn jobs(handle: &CoordinatorHandle) -> JobServiceClient<Authed> {
-    JobServiceClient::with_interceptor(channel(handle).await, bearer(CLIENT))
-}
-
-pub async fn artifacts(handle: &CoordinatorHandle) -> ArtifactServiceClient<Authed> {
-    ArtifactServiceClient::with_interceptor(channel(handle).await, bearer(ADMIN))
-}
-
-fn sha256(data: &[u8]) -> String {
-    use sha2::Digest;
-    hex::encode(sha2::Sha256::digest(data))
-}
-
-async fn upload(
-    client: &mut JobServiceClient<Authed>,
-    kind: pb::UploadKind,
-    name: &str,
-    data: Vec<u8>,
-) -> String {
-    let mut messages = vec![pb::UploadChunk {
-        part: Some(pb::upload_chunk::Part::Header(pb::UploadHeader {
-            kind: kind as i32,
-            filename: name.into(),
-            total_size: data.len() as u64,
-            sha256: sha256(&data),
-        })),
-    }];
-    for chunk in data.chunks(1 << 20) {
-        messages.push(pb::UploadChunk {
-            part: Some(pb::upload_chunk::Part::Data(chunk.to_vec())),
-        });
-    }
-    client
-        .upload(tokio_stream::iter(messages))
-        .await
-        .expect("upload accepted")
-        .into_inner()
-        .upload_id
+    jobs_client(handle, Some(ALICE)).await
 }
 
 /// A generated 32×32 scene with 8 views, as a tar archive with the scene in `scene/`.
 fn scene_tar(dir: &Path) -> Vec<u8> {
     let scene = dir.join("scene");
-    generate(
-        &GenerateOptions {
-            size: 32,
-            views: 8,
-            ..Default::default()
-        },
-        &scene,
-    )
-    .expect("scene generated");
-    let mut builder = tar::Builder::new(Vec::new());
-    builder.append_dir_all("scene", &scene).unwrap();
-    builder.into_inner().unwrap()
-}
-
-fn style_png() -> Vec<u8> {
-    let image = image::RgbImage::from_fn(48, 48, |x, y| {
-        image::Rgb([(x * 5) as u8, (y * 5) as u8, ((x + y) * 3) as u8])
-    });
-    let mut out = std::io::Cursor::new(Vec::new());
-    image.write_to(&mut out, image::ImageFormat::Png).unwrap();
-    out.into_inner()
+    tiny_scene(&scene);
+    tar_dir("scene", &scene)
 }
 
 /// Uploads a generated scene and one style and creates a `tiny` job with `overrides`.
@@ -149,28 +66,21 @@ pub async fn submit(
     memory_bytes: u64,
 ) -> String {
     let mut client = jobs(handle).await;
-    let dataset = upload(
-        &mut client,
-        pb::UploadKind::DatasetArchive,
-        "scene.tar",
-        scene_tar(dir),
-    )
-    .await;
-    let style = upload(
-        &mut client,
-        pb::UploadKind::StyleImage,
-        "style.png",
-        style_png(),
-    )
-    .await;
-    let input = |id: String| pb::InputRef {
-        source: Some(pb::input_ref::Source::UploadId(id)),
+    let upload = |kind, name: &'static str, data: Vec<u8>| {
+        let mut client = client.clone();
+        async move {
+            upload(&mut client, kind, name, &data)
+                .await
+                .expect("upload accepted")
+        }
     };
+    let dataset = upload(pb::UploadKind::DatasetArchive, "scene.tar", scene_tar(dir)).await;
+    let style = upload(pb::UploadKind::StyleImage, "style.png", png(48, 48)).await;
     client
         .create_job(pb::CreateJobRequest {
             name: "test".into(),
-            dataset: Some(input(dataset)),
-            styles: vec![input(style)],
+            dataset: Some(uploaded(&dataset)),
+            styles: vec![uploaded(&style)],
             preset: "tiny".into(),
             config_overrides_json: overrides.to_string(),
             requirements: Some(pb::Requirements {
@@ -188,12 +98,7 @@ pub async fn submit(
 }
 
 pub async fn get_job(handle: &CoordinatorHandle, id: &str) -> pb::Job {
-    jobs(handle)
-        .await
-        .get_job(pb::GetJobRequest { job_id: id.into() })
-        .await
-        .unwrap()
-        .into_inner()
+    stylenerf_testkit::get_job(&mut jobs(handle).await, id).await
 }
 
 /// A test worker: checkpoints every 10 steps, scratch under `dir`.
@@ -266,26 +171,9 @@ impl Running {
     }
 }
 
-/// Polls `f` every 50 ms until it returns `Some`, within `timeout`.
-pub async fn eventually<T, F: std::future::Future<Output = Option<T>>>(
-    timeout: Duration,
-    mut f: impl FnMut() -> F,
-) -> T {
-    let deadline = Instant::now() + timeout;
-    loop {
-        if let Some(t) = f().await {
-            return t;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "condition not met within {timeout:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-}
-
+/// The keys under `prefix` in the store, seen as the operator.
 pub async fn list(handle: &CoordinatorHandle, prefix: &str) -> Vec<String> {
-    artifacts(handle)
+    artifact_client(handle, Some(ADMIN))
         .await
         .list_objects(pb::ListObjectsRequest {
             prefix: prefix.into(),
