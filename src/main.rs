@@ -6,7 +6,7 @@ mod cli;
 use clap::Parser;
 
 fn main() -> std::process::ExitCode {
-    stylenerf_engine::malloc::keep_freed_memory();
+    stylenerf_engine::keep_freed_memory();
     let mut args = cli::Cli::parse();
     cli::quiet_default_logs(&mut args);
     cli::init_tracing(&args.global);

@@ -15,7 +15,7 @@
 const MMAP_THRESHOLD: libc::c_int = 32 << 20;
 
 /// Set to `off` to keep glibc's defaults (for comparisons, or a machine short of memory).
-pub const SWITCH_ENV: &str = "STYLENERF_MALLOC_TUNING";
+const SWITCH_ENV: &str = "STYLENERF_MALLOC_TUNING";
 
 /// Call once, early in `main`. Does nothing when [`SWITCH_ENV`] is `off`.
 pub fn keep_freed_memory() {

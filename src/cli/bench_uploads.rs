@@ -32,7 +32,7 @@ fn write_scene(dir: &Path, mib: u64) -> anyhow::Result<()> {
             "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#,
     )?;
     stylenerf_engine::image_io::save_rgb_png(&dir.join("r_0.png"), 4, 4, &[0.5; 48])?;
-    let mut rng = stylenerf_engine::rng::Rng::new(1);
+    let mut rng = stylenerf_engine::Rng::new(1);
     let mut padding = vec![0u8; (mib << 20) as usize];
     for chunk in padding.chunks_mut(8) {
         let word = rng.next_u64().to_le_bytes();

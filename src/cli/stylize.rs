@@ -7,7 +7,7 @@ use std::time::Instant;
 use candle_core::Device;
 use clap::{Args, Subcommand};
 use stylenerf_engine::image_io;
-use stylenerf_engine::optim::LrSchedule;
+use stylenerf_engine::LrSchedule;
 use stylenerf_engine::style2d::corpus::{self, Corpus, CorpusConfig};
 use stylenerf_engine::style2d::decoder::Decoder;
 use stylenerf_engine::style2d::encoder::VggEncoder;

@@ -136,7 +136,7 @@ impl TaskContext {
         let joined = tokio::task::spawn_blocking(move || {
             let outcome = f(&control, &device, &out);
             // The stage's tensors are gone: give their memory back while the worker idles.
-            stylenerf_engine::malloc::release_free_memory();
+            stylenerf_engine::release_free_memory();
             outcome
         })
         .await;

@@ -20,7 +20,7 @@ struct Cli {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    stylenerf_engine::malloc::keep_freed_memory();
+    stylenerf_engine::keep_freed_memory();
     let cli = Cli::parse();
     logging::init(&cli.log, cli.log_format);
     stylenerf_worker::run_until_signal(cli.worker.into_config()).await?;

@@ -86,10 +86,6 @@ impl SurfaceSamples {
         self.offsets.len().saturating_sub(1)
     }
 
-    pub fn num_samples(&self) -> usize {
-        self.weights.len()
-    }
-
     /// The surface samples of every pixel of `camera`, row-major.
     pub fn for_camera(field: &RadianceField, meta: &FieldMeta, camera: &Camera) -> Result<Self> {
         let rays = meta.camera_rays(camera);
