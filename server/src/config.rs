@@ -5,6 +5,7 @@
 use crate::auth::{AuthConfig, TokenEntry};
 use anyhow::Context;
 use serde::Deserialize;
+use serde_json::{Map, Value};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -75,26 +76,28 @@ pub struct CoordinatorConfig {
     pub limits: Limits,
     /// Directory for upload spool files (default: the system temporary directory).
     pub spool_dir: Option<PathBuf>,
-    /// Checks a job's preset and overrides at submission as the workers will apply them (the
-    /// engine's settings and their bounds); `None` checks only that they form a JSON object.
-    /// The `stylenerf` binary installs the engine's check; this crate does not link the engine.
-    pub settings_check: Option<SettingsCheck>,
+    /// What the workers would refuse, checked at submission: a job's settings and a dataset as
+    /// the stages load it. `None` checks only what this crate knows (the overrides form a JSON
+    /// object; the archive is safe and its scene file names images it holds). The `stylenerf`
+    /// binary installs the engine's checks; this crate does not link the engine.
+    pub engine_checks: Option<Arc<dyn EngineChecks>>,
 }
 
-/// A check of a job's `(preset, overrides)`: every problem as `(field, reason)`.
-#[derive(Clone)]
-pub struct SettingsCheck(
-    #[allow(clippy::type_complexity)]
-    pub  Arc<
-        dyn Fn(&str, &serde_json::Map<String, serde_json::Value>) -> Vec<(String, String)>
-            + Send
-            + Sync,
-    >,
-);
+/// The checks a coordinator borrows from the engine, so that a submission is refused with what
+/// a worker would refuse instead of failing a task after the upload was accepted.
+pub trait EngineChecks: Send + Sync {
+    /// Every problem of a job's `(preset, overrides)` as `(field, reason)`: the engine's
+    /// settings, their types and bounds.
+    fn settings(&self, preset: &str, overrides: &Map<String, Value>) -> Vec<(String, String)>;
 
-impl std::fmt::Debug for SettingsCheck {
+    /// Why the dataset archive (an uncompressed tar already checked for safety) at `archive`
+    /// would not load in a stage, if it would not. Runs on a blocking thread.
+    fn dataset(&self, archive: &Path) -> Result<(), String>;
+}
+
+impl std::fmt::Debug for dyn EngineChecks {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("SettingsCheck")
+        f.write_str("EngineChecks")
     }
 }
 
@@ -245,7 +248,7 @@ impl CoordinatorConfig {
                 .collect(),
             limits: Limits::default(),
             spool_dir: None,
-            settings_check: None,
+            engine_checks: None,
         }
     }
 }

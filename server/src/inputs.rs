@@ -56,11 +56,16 @@ async fn validate_file(
     path: std::path::PathBuf,
 ) -> Result<Result<(String, &'static str), String>, Status> {
     let limits = shared.config.limits.clone();
+    let engine = shared.config.engine_checks.clone();
     let _slot = shared.validations.acquire().await.map_err(internal)?;
     tokio::task::spawn_blocking(move || match kind {
         InputKind::Dataset => {
             let file = std::fs::File::open(&path).map_err(|e| e.to_string())?;
-            validate_dataset_archive(file, &limits).map(|summary| (summary.to_string(), "tar"))
+            let summary = validate_dataset_archive(file, &limits)?;
+            if let Some(engine) = engine {
+                engine.dataset(&path)?;
+            }
+            Ok((summary.to_string(), "tar"))
         }
         InputKind::Style => {
             let bytes = std::fs::read(&path).map_err(|e| e.to_string())?;

@@ -34,7 +34,7 @@ mod writer;
 pub use api::job_api::CAMERA_PATH_KINDS;
 pub use auth::{AuthConfig, Role, TokenEntry};
 pub use config::{
-    ArtifactUrls, CoordinatorArgs, CoordinatorConfig, Limits, Quota, Quotas, SettingsCheck,
+    ArtifactUrls, CoordinatorArgs, CoordinatorConfig, EngineChecks, Limits, Quota, Quotas,
     TlsConfig,
 };
 pub use coordinator::{Coordinator, CoordinatorHandle};

@@ -18,9 +18,9 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 use stylenerf_client::{pb, Client, Input, JobSpec, WatchOptions};
 use stylenerf_engine::image_io::save_rgb_png;
-use stylenerf_engine::Rng;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::style2d::painted;
+use stylenerf_engine::Rng;
 use stylenerf_server::storage::Storage;
 
 /// Options of `stylenerf bench chaos`.

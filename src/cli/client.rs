@@ -390,8 +390,9 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn commands_print_json() {
         let dir = tempfile::tempdir().unwrap();
-        let mut config = stylenerf_server::CoordinatorConfig::local(&dir.path().join("coord"));
-        config.settings_check = Some(super::super::common::engine_settings_check());
+        let config = super::super::common::with_engine_checks(
+            stylenerf_server::CoordinatorConfig::local(&dir.path().join("coord")),
+        );
         let coordinator = stylenerf_server::Coordinator::start(config).await.unwrap();
         let endpoint = coordinator.endpoint();
         let scene = dir.path().join("scene");

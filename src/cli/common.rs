@@ -1,6 +1,7 @@
 //! Pieces shared by the command modules: device selection, presets with `--set` overrides,
 //! and progress bars fed by stage progress reports.
 
+use std::path::Path;
 use std::time::Duration;
 
 use clap::Args;
@@ -10,6 +11,7 @@ use stylenerf_engine::stages::dispatch::check_job_overrides;
 use stylenerf_engine::stages::StageControl;
 use stylenerf_plan::settings::{apply_overrides, parse_override};
 use stylenerf_plan::{bounds, Preset, Stage};
+use stylenerf_server::CoordinatorConfig;
 
 /// Preset, overrides and device, shared by every training command.
 #[derive(Debug, Clone, Args)]
@@ -48,10 +50,29 @@ impl TrainingArgs {
     }
 }
 
-/// The engine's check of a job's preset and overrides, for a coordinator this binary starts:
-/// a mistyped or out-of-range override is refused at submission instead of failing a worker.
-pub fn engine_settings_check() -> stylenerf_server::SettingsCheck {
-    stylenerf_server::SettingsCheck(std::sync::Arc::new(check_job_overrides))
+/// The engine's checks, for a coordinator this binary starts: a mistyped or out-of-range
+/// override, or a dataset whose scene would not load, is refused at submission instead of
+/// failing a worker after the upload was accepted.
+struct EngineChecks;
+
+impl stylenerf_server::EngineChecks for EngineChecks {
+    fn settings(
+        &self,
+        preset: &str,
+        overrides: &serde_json::Map<String, serde_json::Value>,
+    ) -> Vec<(String, String)> {
+        check_job_overrides(preset, overrides)
+    }
+
+    fn dataset(&self, archive: &Path) -> Result<(), String> {
+        stylenerf_worker::archive::check_dataset(archive)
+    }
+}
+
+/// `config` with the engine's checks installed.
+pub fn with_engine_checks(mut config: CoordinatorConfig) -> CoordinatorConfig {
+    config.engine_checks = Some(std::sync::Arc::new(EngineChecks));
+    config
 }
 
 /// A progress bar for one stage and a [`StageControl`] that feeds it.
@@ -87,5 +108,68 @@ mod tests {
     #[test]
     fn the_coordinator_accepts_the_camera_paths_the_engine_renders() {
         assert_eq!(stylenerf_server::CAMERA_PATH_KINDS, PathKind::NAMES);
+    }
+
+    /// Archives the coordinator's own checks pass (safe members, a scene file naming images
+    /// that are there) but the stages would refuse: refused at upload, naming the member.
+    #[tokio::test]
+    async fn the_coordinator_refuses_a_dataset_the_stages_would_not_load() {
+        use stylenerf_testkit::*;
+        let dir = tempfile::tempdir().unwrap();
+        let server = start(super::with_engine_checks(config(dir.path()))).await;
+        let mut alice = jobs_client(&server, Some(ALICE)).await;
+        let kind = pb::UploadKind::DatasetArchive;
+
+        let scene = dir.path().join("scene");
+        tiny_scene(&scene);
+        let good = tar_dir("scene", &scene);
+        upload(&mut alice, kind, "scene.tar", &good).await.unwrap();
+
+        let transforms = std::fs::read(scene.join("transforms.json")).unwrap();
+        let first = std::fs::read_dir(scene.join("images"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .min()
+            .unwrap();
+        let broken_image = dir.path().join("broken");
+        copy_dir(&scene, &broken_image);
+        std::fs::write(broken_image.join("images").join(&first), b"not a png").unwrap();
+        let mut bad_field: serde_json::Value = serde_json::from_slice(&transforms).unwrap();
+        bad_field["k1"] = "barrel".into();
+        let bad_distortion = dir.path().join("distortion");
+        copy_dir(&scene, &bad_distortion);
+        std::fs::write(
+            bad_distortion.join("transforms.json"),
+            serde_json::to_vec(&bad_field).unwrap(),
+        )
+        .unwrap();
+
+        for (folder, needle) in [
+            (&broken_image, format!("scene/images/{first}")),
+            (&bad_distortion, "k1".to_string()),
+        ] {
+            let tar = tar_dir("scene", folder);
+            let status = upload(&mut alice, kind, "scene.tar", &tar)
+                .await
+                .unwrap_err();
+            assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+            let message = format!("{status:?}");
+            assert!(message.contains(&needle), "{needle}: {message}");
+            assert!(!message.contains("/tmp"), "temporary paths leak: {message}");
+        }
+        server.shutdown().await.unwrap();
+    }
+
+    fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+        std::fs::create_dir_all(to).unwrap();
+        for entry in std::fs::read_dir(from).unwrap() {
+            let entry = entry.unwrap();
+            let target = to.join(entry.file_name());
+            if entry.file_type().unwrap().is_dir() {
+                copy_dir(&entry.path(), &target);
+            } else {
+                std::fs::copy(entry.path(), target).unwrap();
+            }
+        }
     }
 }

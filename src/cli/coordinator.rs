@@ -11,8 +11,7 @@ pub struct CoordinatorCommand {
 }
 
 pub fn run(command: CoordinatorCommand) -> anyhow::Result<()> {
-    let mut config = command.args.into_config()?;
-    config.settings_check = Some(super::common::engine_settings_check());
+    let config = super::common::with_engine_checks(command.args.into_config()?);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;

@@ -62,8 +62,8 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
     let scene = prepare_scene(&data_dir.join("scene"))?;
     let styles = paint_styles(&data_dir.join("styles"), &args.styles)?;
 
-    let mut coordinator_config = CoordinatorConfig::local(&data_dir.join("coordinator"));
-    coordinator_config.settings_check = Some(super::common::engine_settings_check());
+    let coordinator_config =
+        super::common::with_engine_checks(CoordinatorConfig::local(&data_dir.join("coordinator")));
     let coordinator = Coordinator::start(coordinator_config)
         .await
         .context("starting the embedded coordinator")?;

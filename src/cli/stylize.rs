@@ -7,7 +7,6 @@ use std::time::Instant;
 use candle_core::Device;
 use clap::{Args, Subcommand};
 use stylenerf_engine::image_io;
-use stylenerf_engine::LrSchedule;
 use stylenerf_engine::style2d::corpus::{self, Corpus, CorpusConfig};
 use stylenerf_engine::style2d::decoder::Decoder;
 use stylenerf_engine::style2d::encoder::VggEncoder;
@@ -16,6 +15,7 @@ use stylenerf_engine::style2d::images::{self, StyleImage};
 use stylenerf_engine::style2d::network::AdaInNet;
 use stylenerf_engine::style2d::painted;
 use stylenerf_engine::style2d::weights::EncoderWeights;
+use stylenerf_engine::LrSchedule;
 
 #[derive(Debug, Subcommand)]
 pub enum StylizeCommand {

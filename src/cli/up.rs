@@ -49,9 +49,9 @@ async fn up(args: UpArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.data_dir)
         .with_context(|| format!("creating {}", args.data_dir.display()))?;
     let data_dir = args.data_dir.canonicalize()?;
-    let mut config = CoordinatorConfig::local(&data_dir.join("coordinator"));
+    let mut config =
+        super::common::with_engine_checks(CoordinatorConfig::local(&data_dir.join("coordinator")));
     config.listen = args.listen;
-    config.settings_check = Some(super::common::engine_settings_check());
     let coordinator = Coordinator::start(config)
         .await
         .with_context(|| format!("starting the coordinator on {}", args.listen))?;

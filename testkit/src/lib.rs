@@ -16,6 +16,9 @@ pub use clients::*;
 pub use coordinator::*;
 pub use fake_worker::*;
 pub use inputs::*;
+/// The protocol's messages and the status codes the tests compare with.
+pub use stylenerf_proto::v1 as pb;
+pub use tonic::Code;
 
 use std::future::Future;
 use std::time::{Duration, Instant};

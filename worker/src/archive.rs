@@ -1,12 +1,13 @@
 //! Unpacking a job's dataset archive (an uncompressed tar, validated by the coordinator at
 //! submission) into a scratch folder without trusting it again: only regular files and
 //! folders, every path kept inside the destination, sizes and member count bounded. Then
-//! finding the scene in it (at the root or in one folder).
+//! finding the scene in it (at the root or in one folder). [`check_dataset`] does all that and
+//! loads the scene, for a coordinator to refuse at submission what a worker would refuse.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use stylenerf_engine::scene::SceneFormat;
+use stylenerf_engine::scene::{LoadOptions, Scene, SceneFormat};
 
 use crate::error::TaskError;
 
@@ -103,6 +104,44 @@ pub fn scene_root(dir: &Path) -> Result<PathBuf, TaskError> {
         "dataset archive: no transforms.json (nerfstudio), transforms_train.json (Blender) or \
          poses_bounds.npy (LLFF) at its root or in a folder",
     ))
+}
+
+/// Working resolution of [`check_dataset`]: every image and depth map is still decoded, but
+/// held small.
+const CHECK_SIDE: u32 = 64;
+
+/// What a worker would make of the dataset archive at `archive`: unpacked into a temporary
+/// folder, its scene found and loaded with the stages' loader and their default options (every
+/// image decoded, at a small working resolution). The error names the file (relative to the
+/// archive), the field and the reason.
+pub fn check_dataset(archive: &Path) -> Result<(), String> {
+    let dir = tempfile::tempdir().map_err(|e| format!("a temporary folder: {e}"))?;
+    let file = std::fs::File::open(archive).map_err(|e| format!("{}: {e}", archive.display()))?;
+    let loaded = unpack(
+        std::io::BufReader::new(file),
+        dir.path(),
+        "upload",
+        ArchiveLimits::default(),
+    )
+    .and_then(|()| scene_root(dir.path()))
+    .map_err(|e| e.reason)
+    .and_then(|root| {
+        let options = LoadOptions {
+            max_side: Some(CHECK_SIDE),
+            ..LoadOptions::default()
+        };
+        Scene::load(&root, &options).map_err(|e| e.to_string())
+    });
+    // Paths in the archive, not in the temporary folder (as given, and resolved).
+    let canonical = dir
+        .path()
+        .canonicalize()
+        .unwrap_or(dir.path().to_path_buf());
+    loaded.map(drop).map_err(|why| {
+        [dir.path(), canonical.as_path()]
+            .iter()
+            .fold(why, |why, d| why.replace(&format!("{}/", d.display()), ""))
+    })
 }
 
 #[cfg(test)]

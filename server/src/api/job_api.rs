@@ -203,13 +203,13 @@ impl JobApi {
             &req.config_overrides_json,
             &mut violations,
         );
-        if let Some(check) = shared
+        if let Some(checks) = shared
             .config
-            .settings_check
+            .engine_checks
             .as_ref()
             .filter(|_| shared.config.presets.contains(&preset))
         {
-            for (key, reason) in (check.0)(&preset, &overrides) {
+            for (key, reason) in checks.settings(&preset, &overrides) {
                 violations.push(Violation::new(
                     format!("config_overrides_json.{key}"),
                     reason,
