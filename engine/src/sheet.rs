@@ -6,15 +6,36 @@ use image::{Rgb, RgbImage};
 
 use crate::Result;
 
-/// Height of the header row, in pixels, for tiles `tile_width` wide.
+/// Space left free at each side of a column's label, in pixels.
+const MARGIN: u32 = 4;
+
+/// The font scale of the header for tiles `tile_width` wide: the largest (up to 3) at which
+/// the longest word of any label fits its column.
 fn header_scale(tile_width: u32, labels: &[&str]) -> u32 {
-    let longest = labels
+    let longest_word = labels
         .iter()
-        .map(|l| l.chars().count())
+        .flat_map(|l| l.split_whitespace())
+        .map(|w| w.chars().count())
         .max()
         .unwrap_or(1)
         .max(1) as u32;
-    (tile_width.saturating_sub(8) / (8 * longest)).clamp(1, 3)
+    (tile_width.saturating_sub(2 * MARGIN) / (8 * longest_word)).clamp(1, 3)
+}
+
+/// `label` broken at spaces into lines of at most `width` characters (a longer word keeps its
+/// own line and is clipped at the column's edge).
+fn wrap(label: &str, width: usize) -> Vec<String> {
+    let mut lines: Vec<String> = Vec::new();
+    for word in label.split_whitespace() {
+        match lines.last_mut() {
+            Some(line) if line.chars().count() + 1 + word.chars().count() <= width => {
+                line.push(' ');
+                line.push_str(word);
+            }
+            _ => lines.push(word.to_string()),
+        }
+    }
+    lines
 }
 
 /// Writes `text` at (x, y) in white, each font pixel a `scale`² block, clipped at `max_x`;
@@ -63,16 +84,22 @@ pub fn labelled_grid(labels: &[&str], rows: &[Vec<RgbImage>]) -> Result<RgbImage
         .len()
         .max(rows.iter().map(Vec::len).max().unwrap_or(0)) as u32;
     let scale = header_scale(w, labels);
-    let header = 8 * scale + 8;
+    let per_line = (w.saturating_sub(2 * MARGIN) / (8 * scale)).max(1) as usize;
+    let wrapped: Vec<Vec<String>> = labels.iter().map(|l| wrap(l, per_line)).collect();
+    let line_height = 8 * scale + 2;
+    let lines = wrapped.iter().map(Vec::len).max().unwrap_or(0).max(1) as u32;
+    let header = lines * line_height + 2 * MARGIN - 2;
     let mut img = RgbImage::from_pixel(cols * w, header + h * rows.len() as u32, Rgb([24, 24, 24]));
-    for (c, label) in labels.iter().enumerate() {
-        draw_text(
-            &mut img,
-            (c as u32 * w + 4, 4),
-            (c as u32 + 1) * w,
-            label,
-            scale,
-        );
+    for (c, label) in wrapped.iter().enumerate() {
+        for (l, line) in label.iter().enumerate() {
+            draw_text(
+                &mut img,
+                (c as u32 * w + MARGIN, MARGIN + l as u32 * line_height),
+                (c as u32 + 1) * w - MARGIN,
+                line,
+                scale,
+            );
+        }
     }
     for (r, row) in rows.iter().enumerate() {
         for (c, tile) in row.iter().enumerate() {
@@ -100,9 +127,8 @@ mod tests {
             &[vec![red.clone(), blue.clone()], vec![blue, red]],
         )
         .unwrap();
-        let scale = header_scale(64, &["style", "ours"]);
-        let header = 8 * scale + 8;
-        assert_eq!(img.dimensions(), (128, header + 64));
+        let header = img.height() - 64;
+        assert!(header >= 16, "a header of {header} px");
         // Tiles under the header, in order.
         assert_eq!(img.get_pixel(10, header + 5), &Rgb([200, 0, 0]));
         assert_eq!(img.get_pixel(70, header + 5), &Rgb([0, 0, 200]));
@@ -116,5 +142,28 @@ mod tests {
         };
         assert!(white(0, 64) > 20 && white(64, 128) > 20);
         assert!(labelled_grid(&["a"], &[]).is_err());
+    }
+
+    #[test]
+    fn long_labels_wrap_inside_their_column() {
+        let tile = RgbImage::from_pixel(128, 32, Rgb([0, 0, 0]));
+        let labels = ["photoreal render", "NeRF -> AdaIN", "stylized NeRF (ours)"];
+        let img = labelled_grid(&labels, &[vec![tile; 3]]).unwrap();
+        let header = img.height() - 32;
+        let white_in = |x0: u32, x1: u32, y0: u32, y1: u32| {
+            (x0..x1)
+                .flat_map(|x| (y0..y1).map(move |y| (x, y)))
+                .filter(|&(x, y)| img.get_pixel(x, y) == &Rgb([255, 255, 255]))
+                .count()
+        };
+        // Nothing within the margin on either side of a column boundary: labels never touch.
+        for edge in [128, 256] {
+            assert_eq!(white_in(edge - MARGIN, edge + MARGIN, 0, header), 0);
+        }
+        // "photoreal render" does not fit one 120-pixel line at scale 1: a second line holds
+        // "render".
+        assert_eq!(wrap("photoreal render", 15), ["photoreal", "render"]);
+        assert!(white_in(0, 128, MARGIN + 10, header) > 20);
+        assert_eq!(wrap("a b c", 3), ["a b", "c"]);
     }
 }
