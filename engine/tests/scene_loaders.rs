@@ -38,7 +38,7 @@ fn depth_at(camera: &Camera, depth: &[f32], x: u32, y: u32) -> f32 {
 #[test]
 fn orbit_scene_loads_as_nerfstudio() {
     let d = fixture(CameraRig::Orbit, 32, 12);
-    let (format, _) = SceneFormat::detect(d.path()).unwrap();
+    let (format, _) = stylenerf_engine::scene::detect(d.path()).unwrap();
     assert_eq!(format, SceneFormat::Nerfstudio);
     let scene = Scene::load(d.path(), &LoadOptions::default()).unwrap();
     assert_eq!(scene.frames.len(), 12);

@@ -7,6 +7,7 @@ use crate::config::Limits;
 use std::collections::HashSet;
 use std::io::Read;
 use std::path::{Component, Path};
+use stylenerf_plan::scene_format::{find_scene, SceneFormat, MAX_SCENE_DEPTH, NO_SCENE};
 
 /// What a valid dataset archive holds.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -29,11 +30,6 @@ impl std::fmt::Display for DatasetSummary {
     }
 }
 
-const SCENE_FILES: [(&str, &str); 3] = [
-    ("transforms.json", "nerfstudio"),
-    ("transforms_train.json", "blender"),
-    ("poses_bounds.npy", "llff"),
-];
 const IMAGE_EXTENSIONS: [&str; 7] = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG", "webp"];
 /// Largest scene file read into memory.
 const MAX_SCENE_FILE_BYTES: u64 = 64 << 20;
@@ -106,7 +102,9 @@ pub fn validate_dataset_archive(
             ));
         }
         let file_name = path.rsplit('/').next().unwrap_or("");
-        if kind.is_file() && SCENE_FILES.iter().any(|(name, _)| *name == file_name) {
+        let candidate = SceneFormat::of_marker(file_name).is_some()
+            && path.matches('/').count() <= MAX_SCENE_DEPTH;
+        if kind.is_file() && candidate {
             if size > MAX_SCENE_FILE_BYTES {
                 return Err(format!("scene file {raw_path:?} is larger than 64 MiB"));
             }
@@ -122,49 +120,32 @@ pub fn validate_dataset_archive(
             return Err(format!("member {raw_path:?} appears twice"));
         }
     }
-    // As the worker finds it: the shallowest folder (two levels down at most) holding a
-    // scene file, the first by name at equal depth, and in it the first of SCENE_FILES.
-    let rank = |path: &str| {
-        let (dir, name) = path.rsplit_once('/').unwrap_or(("", path));
-        let order = SCENE_FILES
-            .iter()
-            .position(|(n, _)| *n == name)
-            .unwrap_or(0);
-        (path.matches('/').count(), dir.to_string(), order)
-    };
-    scene_files.retain(|(path, _)| path.matches('/').count() <= MAX_SCENE_DEPTH);
-    scene_files.sort_by_key(|(path, _)| rank(path));
-    let (scene_path, content) = scene_files.into_iter().next().ok_or_else(|| {
-        "no scene file: expected transforms.json, transforms_train.json or poses_bounds.npy \
-         at the root of the archive or in a folder (two levels down at most)"
-            .to_string()
-    })?;
+    // As the worker finds it (the catalogue's rule).
+    let (format, scene_path) = find_scene(scene_files.iter().map(|(path, _)| path.as_str()))
+        .ok_or_else(|| NO_SCENE.to_string())?;
+    let scene_path = scene_path.to_string();
+    let content = scene_files
+        .into_iter()
+        .find(|(path, _)| *path == scene_path)
+        .map(|(_, content)| content)
+        .unwrap_or_default();
     let dir = scene_path
         .rsplit_once('/')
         .map(|(d, _)| d.to_string())
         .unwrap_or_default();
-    let name = scene_path.rsplit('/').next().unwrap_or("");
-    let format = SCENE_FILES
-        .iter()
-        .find(|(n, _)| *n == name)
-        .map(|(_, f)| *f)
-        .unwrap_or("nerfstudio");
-    let frames = if format == "llff" {
+    let frames = if format == SceneFormat::Llff {
         check_poses_bounds(&content, &dir, &members, limits)
     } else {
         check_transforms(&content, &dir, &members, limits)
     }
     .map_err(|why| format!("{scene_path}: {why}"))?;
     Ok(DatasetSummary {
-        format,
+        format: format.name(),
         scene_file: scene_path,
         frames,
         members: count,
     })
 }
-
-/// Deepest folder (counted from the archive's root) the worker looks for the scene file in.
-const MAX_SCENE_DEPTH: usize = 2;
 
 /// The compression format a file starting with `head` is in, if any.
 fn compression(head: &[u8]) -> Option<&'static str> {

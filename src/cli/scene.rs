@@ -296,7 +296,7 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             };
             let detected = match opts.format {
                 Some(f) => f,
-                None => SceneFormat::detect(&data)?.0,
+                None => stylenerf_engine::scene::detect(&data)?.0,
             };
             let scene = Scene::load(&data, &opts)?;
             print_summary(detected, &scene);

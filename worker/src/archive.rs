@@ -7,7 +7,8 @@
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use stylenerf_engine::scene::{LoadOptions, Scene, SceneFormat};
+use stylenerf_engine::scene::{LoadOptions, Scene};
+use stylenerf_plan::scene_format::{find_scene, MAX_SCENE_DEPTH, NO_SCENE};
 
 use crate::error::TaskError;
 
@@ -76,34 +77,31 @@ pub fn unpack(
     Ok(())
 }
 
-/// The folder holding the scene: `dir` itself or the shallowest folder below it (two levels
-/// at most) with a scene file.
+/// The folder holding the scene, by the catalogue's rule ([`find_scene`]): `dir` itself or the
+/// shallowest folder below it (two levels at most) with a scene file.
 pub fn scene_root(dir: &Path) -> Result<PathBuf, TaskError> {
-    let is_scene = |d: &Path| {
-        SceneFormat::ALL
-            .iter()
-            .any(|f| d.join(f.marker()).is_file())
-    };
-    let mut level = vec![dir.to_path_buf()];
-    for _ in 0..3 {
-        let mut found: Vec<&PathBuf> = level.iter().filter(|d| is_scene(d)).collect();
-        found.sort();
-        if let Some(d) = found.first() {
-            return Ok((*d).clone());
+    let mut files = Vec::new();
+    let mut level = vec![PathBuf::new()];
+    for _ in 0..=MAX_SCENE_DEPTH {
+        let mut next = Vec::new();
+        for rel in &level {
+            let Ok(entries) = std::fs::read_dir(dir.join(rel)) else {
+                continue;
+            };
+            for entry in entries.filter_map(|e| e.ok()) {
+                let path = rel.join(entry.file_name());
+                match entry.file_type() {
+                    Ok(t) if t.is_dir() => next.push(path),
+                    Ok(t) if t.is_file() => files.push(path.to_string_lossy().into_owned()),
+                    _ => {}
+                }
+            }
         }
-        level = level
-            .iter()
-            .filter_map(|d| std::fs::read_dir(d).ok())
-            .flatten()
-            .filter_map(|e| e.ok())
-            .map(|e| e.path())
-            .filter(|p| p.is_dir())
-            .collect();
+        level = next;
     }
-    Err(TaskError::permanent(
-        "dataset archive: no transforms.json (nerfstudio), transforms_train.json (Blender) or \
-         poses_bounds.npy (LLFF) at its root or in a folder",
-    ))
+    let (_, marker) = find_scene(files.iter().map(String::as_str))
+        .ok_or_else(|| TaskError::permanent(format!("dataset archive: {NO_SCENE}")))?;
+    Ok(dir.join(marker).parent().unwrap_or(dir).to_path_buf())
 }
 
 /// Working resolution of [`check_dataset`]: every image and depth map is still decoded, but
@@ -190,7 +188,7 @@ mod tests {
         assert!(!err.retryable && err.reason.contains("outside"), "{err}");
         assert!(!dir.parent().unwrap().join("evil").exists());
         let err = scene_root(&dir).unwrap_err();
-        assert!(err.reason.contains("no transforms.json"), "{err}");
+        assert!(err.reason.contains("no scene file"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -9,10 +9,11 @@ use glam::Vec3;
 
 use super::frames::{self, FrameSpec, IntrinsicsSpec, Split};
 use super::json::{self, Obj};
+use super::SceneFormat;
 use super::{paths, require_split, Aabb, LoadOptions, Scene};
 use crate::Result;
 
-pub const TRAIN: &str = "transforms_train.json";
+pub const TRAIN: &str = SceneFormat::Blender.marker();
 pub const VAL: &str = "transforms_val.json";
 pub const TEST: &str = "transforms_test.json";
 

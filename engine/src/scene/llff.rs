@@ -15,11 +15,12 @@ use glam::{Mat3, Vec3};
 
 use super::distortion::Distortion;
 use super::frames::{self, FrameSpec, IntrinsicsSpec, Split};
+use super::SceneFormat;
 use super::{npy, paths, require_split, Aabb, LoadOptions, Scene};
 use crate::camera::{Camera, Intrinsics, Ndc};
 use crate::{EngineError, Result};
 
-pub const POSES_BOUNDS: &str = "poses_bounds.npy";
+pub const POSES_BOUNDS: &str = SceneFormat::Llff.marker();
 
 /// NeRF's `bd_factor`: after rescaling, the nearest scene depth is 1 / 0.75.
 const BD_FACTOR: f32 = 0.75;

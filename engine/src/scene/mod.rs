@@ -128,86 +128,51 @@ impl fmt::Display for Background {
     }
 }
 
-/// The dataset formats [`Scene::load`] understands.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum SceneFormat {
-    /// nerfstudio / instant-ngp `transforms.json`.
-    Nerfstudio,
-    /// NeRF-synthetic `transforms_{train,val,test}.json`.
-    Blender,
-    /// LLFF `poses_bounds.npy` + `images/` (forward-facing, NDC rays).
-    Llff,
-}
+/// The dataset formats [`Scene::load`] understands (the catalogue's, which the coordinator
+/// and the worker find uploads by).
+pub use stylenerf_plan::SceneFormat;
 
-impl SceneFormat {
-    pub const ALL: [SceneFormat; 3] = [Self::Nerfstudio, Self::Blender, Self::Llff];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Nerfstudio => "nerfstudio",
-            Self::Blender => "blender",
-            Self::Llff => "llff",
-        }
-    }
-
-    /// The file that marks a folder as holding this format.
-    pub fn marker(self) -> &'static str {
-        match self {
-            Self::Nerfstudio => nerfstudio::TRANSFORMS,
-            Self::Blender => blender::TRAIN,
-            Self::Llff => llff::POSES_BOUNDS,
-        }
-    }
-
-    /// The format of the dataset at `path` (a folder, or one of the marker files) and its
-    /// folder. A folder holding several formats is read as the first of nerfstudio, Blender,
-    /// LLFF.
-    pub fn detect(path: &Path) -> Result<(SceneFormat, PathBuf)> {
-        if path.is_file() {
-            let name = path
-                .file_name()
-                .and_then(|n| n.to_str())
-                .unwrap_or_default();
-            let dir = paths::parent_dir(path).to_path_buf();
-            return match name {
-                blender::TRAIN | blender::VAL | blender::TEST => Ok((Self::Blender, dir)),
-                llff::POSES_BOUNDS => Ok((Self::Llff, dir)),
-                n if n.ends_with(".json") => Ok((Self::Nerfstudio, path.to_path_buf())),
-                _ => Err(EngineError::dataset(
-                    path,
-                    "(format)",
-                    "not a dataset file: expected transforms.json, transforms_train.json or \
-                     poses_bounds.npy",
-                )),
-            };
-        }
-        if !path.is_dir() {
-            return Err(EngineError::dataset(
+/// The format of the dataset at `path` (a folder, or one of the marker files) and its
+/// folder. A folder holding several formats is read as the first of nerfstudio, Blender,
+/// LLFF.
+pub fn detect(path: &Path) -> Result<(SceneFormat, PathBuf)> {
+    if path.is_file() {
+        let name = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or_default();
+        let dir = paths::parent_dir(path).to_path_buf();
+        return match name {
+            blender::TRAIN | blender::VAL | blender::TEST => Ok((SceneFormat::Blender, dir)),
+            llff::POSES_BOUNDS => Ok((SceneFormat::Llff, dir)),
+            n if n.ends_with(".json") => Ok((SceneFormat::Nerfstudio, path.to_path_buf())),
+            _ => Err(EngineError::dataset(
                 path,
-                "(path)",
-                "no such file or folder",
-            ));
-        }
-        Self::ALL
-            .into_iter()
-            .find(|f| path.join(f.marker()).is_file())
-            .map(|f| (f, path.to_path_buf()))
-            .ok_or_else(|| {
-                EngineError::dataset(
-                    path,
-                    "(format)",
-                    "no transforms.json (nerfstudio), transforms_train.json (Blender) or \
-                     poses_bounds.npy (LLFF) in this folder",
-                )
-            })
+                "(format)",
+                "not a dataset file: expected transforms.json, transforms_train.json or \
+                 poses_bounds.npy",
+            )),
+        };
     }
-}
-
-impl fmt::Display for SceneFormat {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
+    if !path.is_dir() {
+        return Err(EngineError::dataset(
+            path,
+            "(path)",
+            "no such file or folder",
+        ));
     }
+    SceneFormat::ALL
+        .into_iter()
+        .find(|f| path.join(f.marker()).is_file())
+        .map(|f| (f, path.to_path_buf()))
+        .ok_or_else(|| {
+            EngineError::dataset(
+                path,
+                "(format)",
+                "no transforms.json (nerfstudio), transforms_train.json (Blender) or \
+                 poses_bounds.npy (LLFF) in this folder",
+            )
+        })
 }
 
 /// How to load a dataset.
@@ -296,7 +261,7 @@ impl Scene {
         let (format, found) = match opts.format {
             Some(f) if path.is_dir() => (f, path.join(f.marker())),
             Some(f) => (f, path.to_path_buf()),
-            None => SceneFormat::detect(path)?,
+            None => detect(path)?,
         };
         match format {
             SceneFormat::Nerfstudio if found.is_dir() => {

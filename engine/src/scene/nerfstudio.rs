@@ -11,12 +11,13 @@ use glam::Vec3;
 use super::distortion::Distortion;
 use super::frames::{self, DepthSpec, FrameSpec, IntrinsicsSpec, Split};
 use super::json::{self, Obj};
+use super::SceneFormat;
 use super::{bounds, paths, require_split, Aabb, Background, LoadOptions, Scene};
 use crate::camera::Intrinsics;
 use crate::Result;
 
 /// The file name nerfstudio datasets use.
-pub const TRANSFORMS: &str = "transforms.json";
+pub const TRANSFORMS: &str = SceneFormat::Nerfstudio.marker();
 
 /// Default depth scale: 16-bit depth PNGs in millimetres.
 const DEFAULT_DEPTH_SCALE: f32 = 1e-3;
