@@ -1,5 +1,5 @@
 //! The worker against an embedded coordinator on loopback (real SQLite file, token auth): the
-//! five stages of a tiny job, resuming from a checkpoint after a shutdown, cancellation
+//! stages of a tiny job, resuming from a checkpoint after a shutdown, cancellation
 //! through the heartbeat, non-retryable user errors, and the memory budget.
 
 mod support;
@@ -18,18 +18,12 @@ fn finished(event: &WorkerEvent) -> Option<(pb::Stage, TaskResult)> {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn runs_all_five_stages_and_stores_their_artifacts() {
+async fn runs_every_stage_and_stores_its_artifacts() {
     let dir = tempfile::tempdir().unwrap();
     let coordinator = coordinator(dir.path()).await;
     let job = submit(&coordinator, dir.path(), serde_json::json!({}), 0).await;
     let mut worker = spawn_worker(worker_config(&coordinator, dir.path())).await;
-    for expected in [
-        pb::Stage::NerfPretrain,
-        pb::Stage::RenderViews,
-        pb::Stage::DecoderPretrain,
-        pb::Stage::MutualLearning,
-        pb::Stage::RenderStylized,
-    ] {
+    for expected in stylenerf_testkit::Stage::ALL.map(pb::Stage::from) {
         let (stage, result) = worker.wait_for(Duration::from_secs(180), finished).await;
         assert_eq!(stage, expected);
         let TaskResult::Completed { outputs, metrics } = result else {

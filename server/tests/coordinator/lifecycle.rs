@@ -1,4 +1,4 @@
-//! A job through all five stages with a fake worker, watched with replay; artifacts listed and
+//! A job through every stage with a fake worker, watched with replay; artifacts listed and
 //! downloaded; a further render; idempotent creation; capability matching; health.
 
 use futures::StreamExt;
@@ -31,7 +31,7 @@ async fn job_runs_through_all_stages_and_renders_again() {
     let mut client = jobs_client(&server, Some(ALICE)).await;
     let job = create_job(&mut client).await;
     assert_eq!(job.state(), pb::JobState::Queued);
-    assert_eq!(job.tasks.len(), 5);
+    assert_eq!(job.tasks.len(), STAGES.len());
     assert_eq!(job.style_keys.len(), 2);
     assert_eq!(job.dataset_key, format!("jobs/{}/inputs/scene.tar", job.id));
 
@@ -320,7 +320,8 @@ async fn a_job_that_failed_in_its_final_render_renders_again() {
     request.camera_path = None;
     let job = create(&mut client, request).await;
     let mut worker = FakeWorker::register(&server, "cpu", 0).await;
-    for _ in 0..4 {
+    // Every stage before the last, render_stylized.
+    for _ in 1..STAGES.len() {
         worker.run_one().await;
     }
     let render = worker.lease(5000).await.expect("render_stylized");
