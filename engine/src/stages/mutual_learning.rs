@@ -93,7 +93,7 @@ impl MutualConfig {
             latent_weight: 1e-4,
             style_weight: 1.0,
             mimic_weight: 100.0,
-            nerf_style_weight: 0.001,
+            nerf_style_weight: 0.128,
             decoder_freeze: 0.4,
             finetune_decoder: true,
             learnable_latents: true,
