@@ -132,12 +132,12 @@ mod tests {
             .min()
             .unwrap();
         let broken_image = dir.path().join("broken");
-        copy_dir(&scene, &broken_image);
+        tiny_scene(&broken_image);
         std::fs::write(broken_image.join("images").join(&first), b"not a png").unwrap();
         let mut bad_field: serde_json::Value = serde_json::from_slice(&transforms).unwrap();
         bad_field["k1"] = "barrel".into();
         let bad_distortion = dir.path().join("distortion");
-        copy_dir(&scene, &bad_distortion);
+        tiny_scene(&bad_distortion);
         std::fs::write(
             bad_distortion.join("transforms.json"),
             serde_json::to_vec(&bad_field).unwrap(),
@@ -158,18 +158,5 @@ mod tests {
             assert!(!message.contains("/tmp"), "temporary paths leak: {message}");
         }
         server.shutdown().await.unwrap();
-    }
-
-    fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
-        std::fs::create_dir_all(to).unwrap();
-        for entry in std::fs::read_dir(from).unwrap() {
-            let entry = entry.unwrap();
-            let target = to.join(entry.file_name());
-            if entry.file_type().unwrap().is_dir() {
-                copy_dir(&entry.path(), &target);
-            } else {
-                std::fs::copy(entry.path(), target).unwrap();
-            }
-        }
     }
 }

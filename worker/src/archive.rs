@@ -109,11 +109,14 @@ pub fn scene_root(dir: &Path) -> Result<PathBuf, TaskError> {
 const CHECK_SIDE: u32 = 64;
 
 /// What a worker would make of the dataset archive at `archive`: unpacked into a temporary
-/// folder, its scene found and loaded with the stages' loader and their default options (every
+/// folder beside it (the coordinator's spool folder, which the operator sized for uploads),
+/// its scene found and loaded with the stages' loader and their default options (every
 /// image decoded, at a small working resolution). The error names the file (relative to the
 /// archive), the field and the reason.
 pub fn check_dataset(archive: &Path) -> Result<(), String> {
-    let dir = tempfile::tempdir().map_err(|e| format!("a temporary folder: {e}"))?;
+    let beside = archive.parent().unwrap_or(Path::new("."));
+    let dir = tempfile::tempdir_in(beside)
+        .map_err(|e| format!("a temporary folder in {}: {e}", beside.display()))?;
     let file = std::fs::File::open(archive).map_err(|e| format!("{}: {e}", archive.display()))?;
     let loaded = unpack(
         std::io::BufReader::new(file),
