@@ -21,7 +21,7 @@ use stylenerf_client::{pb, Client, Input, JobSpec, WatchOptions};
 use stylenerf_engine::image_io::save_rgb_png;
 use stylenerf_engine::style2d::painted;
 use stylenerf_server::{Coordinator, CoordinatorConfig, CoordinatorHandle};
-use stylenerf_testkit::{eventually, tiny_scene, Stage};
+use stylenerf_testkit::{eventually, tiny_scene, Source};
 
 /// One test at a time: each runs training processes.
 static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
@@ -200,7 +200,7 @@ async fn a_job_through_two_worker_processes_completes_and_downloads() {
         .expect("the job ends in time")
         .unwrap();
     assert_succeeded(&done);
-    assert_eq!(done.tasks.len(), Stage::ALL.len());
+    assert_eq!(done.tasks.len(), Source::Dataset.stages().len());
     assert!(done.tasks.iter().all(|t| t.worker_id.starts_with("w-e2e-")));
 
     let out = cluster.dir.path().join("out");

@@ -11,7 +11,7 @@ use stylenerf_client::{
 };
 use stylenerf_server::CoordinatorHandle;
 use stylenerf_testkit::{
-    config, fake_output, png, FakeWorker, Stage, ALICE, BOB, SCENE_TRANSFORMS, WORKER,
+    config, fake_output, png, FakeWorker, Source, ALICE, BOB, SCENE_TRANSFORMS, WORKER,
 };
 
 async fn start(dir: &Path) -> CoordinatorHandle {
@@ -78,7 +78,7 @@ async fn submit_get_list_watch_and_cancel() {
     );
     let job = first.job;
     assert_eq!(job.preset, "tiny");
-    assert_eq!(job.tasks.len(), Stage::ALL.len());
+    assert_eq!(job.tasks.len(), Source::Dataset.stages().len());
     assert_eq!(job.style_keys.len(), 2);
     let overrides: serde_json::Value = serde_json::from_str(&job.config_overrides_json).unwrap();
     assert_eq!(overrides, serde_json::json!({"nerf_pretrain.steps": 25}));
@@ -113,7 +113,7 @@ async fn submit_get_list_watch_and_cancel() {
         .await
         .unwrap();
     assert_eq!(rest.jobs.len(), 1);
-    assert_eq!(rest.jobs[0].tasks.len(), Stage::ALL.len());
+    assert_eq!(rest.jobs[0].tasks.len(), Source::Dataset.stages().len());
     assert!(rest.next_page_token.is_none());
     let queued = client
         .list_all(
@@ -259,7 +259,7 @@ async fn artifacts_download_and_render() {
         "{early:?}"
     );
     // The stages after the first, which ran above.
-    for _ in 1..Stage::ALL.len() {
+    for _ in 1..Source::Dataset.stages().len() {
         worker.run_one().await;
     }
     let finished = client.wait(&job.id).await.unwrap();

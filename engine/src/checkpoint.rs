@@ -8,6 +8,11 @@
 //! or altered copy (a bad disk, an interrupted transfer) is recognised; loading also refuses
 //! tensors with NaN or infinite values. [`CheckpointDir::latest`] passes over such a checkpoint
 //! to the newest good one.
+//!
+//! A stage whose state is a folder of files rather than tensors (COLMAP's database and models
+//! in `poses`) checkpoints it the same way: [`CheckpointDir::save_folder`] stores each file as
+//! a `u8` tensor named by its relative path, so checksums, atomic writes, pruning, the
+//! worker's uploads and the newest-good restore are the same for every stage.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -162,6 +167,56 @@ impl CheckpointDir {
         })
     }
 
+    /// Writes a checkpoint for `step` of the files under `root` (each a `u8` tensor named by
+    /// its path relative to `root`) and prunes old ones.
+    pub fn save_folder<M: Serialize>(&self, step: u64, root: &Path, meta: &M) -> Result<()> {
+        let mut tensors = Vec::new();
+        for path in files_under(root)? {
+            let bytes = std::fs::read(&path).map_err(|e| EngineError::io(&path, e))?;
+            let name = path
+                .strip_prefix(root)
+                .expect("listed under root")
+                .to_string_lossy()
+                .replace('\\', "/");
+            let len = bytes.len();
+            tensors.push((name, Tensor::from_vec(bytes, len, &Device::Cpu)?));
+        }
+        self.save(step, &tensors, meta)
+    }
+
+    /// Restores the newest good folder checkpoint into `root` (emptied first); returns its
+    /// step and metadata, or `None` when there is none.
+    pub fn restore_folder<M: DeserializeOwned>(&self, root: &Path) -> Result<Option<(u64, M)>> {
+        let Some(checkpoint) = self.latest::<M>(&Device::Cpu)? else {
+            return Ok(None);
+        };
+        match std::fs::remove_dir_all(root) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(EngineError::io(root, e))
+            }
+            _ => {}
+        }
+        for (name, tensor) in &checkpoint.tensors {
+            let relative = Path::new(name);
+            let safe = relative
+                .components()
+                .all(|c| matches!(c, std::path::Component::Normal(_)));
+            if !safe || tensor.dtype() != candle_core::DType::U8 {
+                return Err(EngineError::artifact(
+                    &self.dir,
+                    format!("checkpoint {} holds {name:?}, not a file", checkpoint.step),
+                ));
+            }
+            let path = root.join(relative);
+            if let Some(parent) = path.parent() {
+                std::fs::create_dir_all(parent).map_err(|e| EngineError::io(parent, e))?;
+            }
+            std::fs::write(&path, tensor.to_vec1::<u8>()?)
+                .map_err(|e| EngineError::io(&path, e))?;
+        }
+        Ok(Some((checkpoint.step, checkpoint.meta)))
+    }
+
     fn prune(&self) -> Result<()> {
         let steps = self.steps()?;
         for &step in steps.iter().take(steps.len().saturating_sub(self.keep)) {
@@ -183,6 +238,24 @@ impl CheckpointDir {
 enum Stored<M> {
     Checked { tensors_sha256: String, meta: M },
     Unchecked(M),
+}
+
+/// Every file under `root`, recursively, in name order.
+fn files_under(root: &Path) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    let mut dirs = vec![root.to_path_buf()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).map_err(|e| EngineError::io(&dir, e))? {
+            let path = entry.map_err(|e| EngineError::io(&dir, e))?.path();
+            if path.is_dir() {
+                dirs.push(path);
+            } else {
+                files.push(path);
+            }
+        }
+    }
+    files.sort();
+    Ok(files)
 }
 
 fn sha256_file(path: &Path) -> Result<String> {
@@ -306,5 +379,29 @@ mod tests {
         std::fs::write(tmp.path().join("step-00000007.json"), b"7").unwrap();
         let loaded = ck.load::<u32>(7, &Device::Cpu).unwrap();
         assert_eq!(loaded.meta, 7);
+    }
+
+    #[test]
+    fn a_folder_comes_back_as_it_was_saved_and_a_newer_one_replaces_it() {
+        let tmp = tempfile::tempdir().unwrap();
+        let work = tmp.path().join("work");
+        std::fs::create_dir_all(work.join("sparse/0")).unwrap();
+        std::fs::write(work.join("database.db"), b"\0\x01sqlite").unwrap();
+        std::fs::write(work.join("sparse/0/images.bin"), b"").unwrap();
+        let ck = CheckpointDir::new(tmp.path().join("ckpt"), 1);
+        ck.save_folder(2, &work, &"two").unwrap();
+        std::fs::write(work.join("stale.txt"), b"after the checkpoint").unwrap();
+        let (step, meta) = ck.restore_folder::<String>(&work).unwrap().unwrap();
+        assert_eq!((step, meta.as_str()), (2, "two"));
+        assert_eq!(
+            std::fs::read(work.join("database.db")).unwrap(),
+            b"\0\x01sqlite"
+        );
+        assert!(work.join("sparse/0/images.bin").is_file());
+        assert!(!work.join("stale.txt").exists());
+        ck.save_folder(3, &work, &"three").unwrap();
+        assert_eq!(ck.steps().unwrap(), [3]);
+        let empty = CheckpointDir::new(tmp.path().join("none"), 1);
+        assert!(empty.restore_folder::<String>(&work).unwrap().is_none());
     }
 }

@@ -8,6 +8,7 @@
 use std::path::Path;
 use std::process::Command;
 
+use stylenerf_engine::checkpoint::CheckpointDir;
 use stylenerf_engine::poses::{self, align, PosesOptions, PosesReport, Tool};
 use stylenerf_engine::scene::generate::{generate, CameraRig, GenerateOptions, Surroundings};
 use stylenerf_engine::scene::{LoadOptions, Scene};
@@ -70,13 +71,25 @@ fn photos_of_a_generated_turntable_get_the_generators_poses_and_a_stopped_run_re
         max_side: 128,
         ..PosesOptions::default()
     };
-    // Stopped after two steps (frames, features), then resumed: features are not extracted
+    // Stopped after two steps (frames, features), then resumed on "another machine" (the work
+    // folder gone, its checkpoint kept, as a worker's task is): features are not extracted
     // again.
     let mut stop = StageControl::default();
     stop.stop_after_step = Some(2);
-    let first = poses::run(&scene.join("images"), &work, &out, &opts, &stop).unwrap();
+    let snapshots = CheckpointDir::new(tmp.path().join("ckpt"), 1);
+    let first = poses::run(
+        &scene.join("images"),
+        &work,
+        &out,
+        &opts,
+        &stop,
+        Some(&snapshots),
+    )
+    .unwrap();
     assert!(matches!(first, Outcome::Stopped { step: 2 }));
     assert!(!out.join("transforms.json").exists());
+    assert_eq!(snapshots.steps().unwrap(), [2]);
+    std::fs::remove_dir_all(&work).unwrap();
     let report = done(
         poses::run(
             &scene.join("images"),
@@ -84,6 +97,7 @@ fn photos_of_a_generated_turntable_get_the_generators_poses_and_a_stopped_run_re
             &out,
             &opts,
             &StageControl::default(),
+            Some(&snapshots),
         )
         .unwrap(),
     );
@@ -140,6 +154,7 @@ fn a_turntable_video_gets_the_generators_poses() {
             &out,
             &opts,
             &StageControl::default(),
+            None,
         )
         .unwrap(),
     );
@@ -169,6 +184,7 @@ fn unsolvable_images_get_their_likely_cause_and_an_output_over_the_input_is_refu
         &tmp.path().join("out"),
         &PosesOptions::default(),
         &StageControl::default(),
+        None,
     )
     .unwrap_err()
     .to_string();
@@ -185,6 +201,7 @@ fn unsolvable_images_get_their_likely_cause_and_an_output_over_the_input_is_refu
         &tmp.path().join("capture"),
         &PosesOptions::default(),
         &StageControl::default(),
+        None,
     )
     .unwrap_err()
     .to_string();
@@ -199,6 +216,7 @@ fn unsolvable_images_get_their_likely_cause_and_an_output_over_the_input_is_refu
         &tmp.path().join("out3"),
         &PosesOptions::default(),
         &StageControl::default(),
+        None,
     )
     .unwrap_err()
     .to_string();

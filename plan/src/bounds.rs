@@ -44,6 +44,16 @@ const NERF_PRETRAIN: &[Range] = &[
     ("sampling.early_stop_eps", 0.0, 1.0),
 ];
 
+const POSES: &[Range] = &[
+    ("max_side", 16.0, 16384.0),
+    ("feature_max_side", 64.0, 16384.0),
+    ("max_features", 64.0, 65536.0),
+    ("video.fps", 0.01, 120.0),
+    ("video.max_frames", 3.0, 2000.0),
+    ("video.max_side", 64.0, 16384.0),
+    ("min_registered", 0.0, 1.0),
+];
+
 const RENDER_VIEWS: &[Range] = &[
     ("path_frames", 0.0, 3600.0),
     ("path_keyframes", 0.0, 3600.0),
@@ -83,6 +93,7 @@ const RENDER_STYLIZED: &[Range] = &[
 
 fn ranges(stage: Stage) -> &'static [Range] {
     match stage {
+        Stage::Poses => POSES,
         Stage::NerfPretrain => NERF_PRETRAIN,
         Stage::RenderViews => RENDER_VIEWS,
         Stage::DecoderPretrain => DECODER_PRETRAIN,

@@ -19,4 +19,4 @@ pub mod stage;
 pub use preset::Preset;
 pub use scene_format::{find_scene, SceneFormat};
 pub use settings::{Override, SettingError};
-pub use stage::{Stage, StageInputs};
+pub use stage::{Source, Stage, StageInputs};

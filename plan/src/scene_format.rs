@@ -1,6 +1,7 @@
 //! The dataset formats and the one rule for finding a scene in an upload, shared by the
 //! coordinator (which sees archive member paths), the worker (which sees the unpacked folder)
-//! and the engine's loaders (which name the same marker files).
+//! and the engine's loaders (which name the same marker files); and the same for the photos of
+//! an upload of plain photos ([`find_photos`]).
 
 use serde::{Deserialize, Serialize};
 
@@ -75,6 +76,32 @@ pub fn find_scene<'a>(files: impl IntoIterator<Item = &'a str>) -> Option<(Scene
         .map(|(_, found)| found)
 }
 
+/// Extensions (lower case) of the photos COLMAP and the loaders read.
+pub const PHOTO_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
+
+/// Fewest photos camera poses can be recovered from.
+pub const MIN_PHOTOS: usize = 3;
+
+/// The folder of an upload of plain photos that holds them, among its `/`-separated relative
+/// `files`: the folder (at most [`MAX_SCENE_DEPTH`] below the root) with the most photos, the
+/// shallowest and then the first by name among equals. Returns the folder (`""` for the root)
+/// and its number of photos.
+pub fn find_photos<'a>(files: impl IntoIterator<Item = &'a str>) -> Option<(&'a str, usize)> {
+    let mut counts: std::collections::BTreeMap<&str, usize> = Default::default();
+    for path in files {
+        let (dir, name) = path.rsplit_once('/').unwrap_or(("", path));
+        let photo = name.rsplit_once('.').is_some_and(|(stem, ext)| {
+            !stem.is_empty() && PHOTO_EXTENSIONS.contains(&ext.to_ascii_lowercase().as_str())
+        });
+        if photo && path.matches('/').count() <= MAX_SCENE_DEPTH {
+            *counts.entry(dir).or_default() += 1;
+        }
+    }
+    counts
+        .into_iter()
+        .min_by_key(|&(dir, n)| (std::cmp::Reverse(n), dir.matches('/').count(), dir))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -111,5 +138,24 @@ mod tests {
             serde_json::to_value(SceneFormat::Blender).unwrap(),
             serde_json::json!("blender")
         );
+    }
+
+    #[test]
+    fn the_folder_with_the_most_photos_holds_them() {
+        let found = |files: &[&'static str]| find_photos(files.iter().copied());
+        assert_eq!(
+            found(&[
+                "a.png",
+                "p/1.JPG",
+                "p/2.jpeg",
+                "q/x.png",
+                "p/notes.txt",
+                "p/.png"
+            ]),
+            Some(("p", 2))
+        );
+        assert_eq!(found(&["b/1.png", "a/1.png"]), Some(("a", 1)));
+        assert_eq!(found(&["1.png", "a/1.png"]), Some(("", 1)));
+        assert_eq!(found(&["a/b/c/1.png", "readme.md"]), None);
     }
 }

@@ -6,6 +6,7 @@
 use crate::auth::{Principal, Role};
 use crate::errors::{internal, invalid};
 use crate::model::now_ms;
+use crate::photos::validate_photos;
 use crate::state::Shared;
 use crate::storage::check_sha256;
 use crate::validation::{validate_dataset_archive, validate_style_image};
@@ -15,11 +16,13 @@ use stylenerf_proto::v1 as pb;
 use tokio::io::AsyncWriteExt;
 use tonic::Status;
 
-/// The two kinds of inputs.
+/// The kinds of inputs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum InputKind {
     Dataset,
     Style,
+    /// Plain photos (a tar archive) or a video: a scene without camera poses.
+    Photos,
 }
 
 impl InputKind {
@@ -27,12 +30,13 @@ impl InputKind {
         match self {
             InputKind::Dataset => "dataset",
             InputKind::Style => "style",
+            InputKind::Photos => "photos",
         }
     }
 
     /// The kind stored as [`InputKind::as_str`].
     pub fn parse(name: &str) -> Option<InputKind> {
-        [InputKind::Dataset, InputKind::Style]
+        [InputKind::Dataset, InputKind::Style, InputKind::Photos]
             .into_iter()
             .find(|kind| kind.as_str() == name)
     }
@@ -41,6 +45,7 @@ impl InputKind {
         match self {
             InputKind::Dataset => pb::UploadKind::DatasetArchive,
             InputKind::Style => pb::UploadKind::StyleImage,
+            InputKind::Photos => pb::UploadKind::Photos,
         }
     }
 }
@@ -72,6 +77,9 @@ async fn validate_file(
             validate_style_image(&bytes, &limits)
                 .map(|summary| (summary.to_string(), summary.extension()))
         }
+        InputKind::Photos => {
+            validate_photos(&path, &limits).map(|summary| (summary.to_string(), summary.extension))
+        }
     })
     .await
     .map_err(internal)
@@ -82,14 +90,18 @@ pub fn upload_kind(field: &str, kind: i32) -> Result<InputKind, Status> {
     match pb::UploadKind::try_from(kind) {
         Ok(pb::UploadKind::DatasetArchive) => Ok(InputKind::Dataset),
         Ok(pb::UploadKind::StyleImage) => Ok(InputKind::Style),
-        _ => Err(invalid(field, "must be DATASET_ARCHIVE or STYLE_IMAGE")),
+        Ok(pb::UploadKind::Photos) => Ok(InputKind::Photos),
+        _ => Err(invalid(
+            field,
+            "must be DATASET_ARCHIVE, STYLE_IMAGE or PHOTOS",
+        )),
     }
 }
 
 /// The largest input of `kind` the coordinator accepts.
 pub fn size_limit(shared: &Shared, kind: InputKind) -> u64 {
     match kind {
-        InputKind::Dataset => shared.config.limits.max_dataset_bytes,
+        InputKind::Dataset | InputKind::Photos => shared.config.limits.max_dataset_bytes,
         InputKind::Style => shared.config.limits.max_style_bytes,
     }
 }
@@ -365,15 +377,17 @@ where
     accept_spooled(shared, caller, kind, filename, (file, actual, received)).await
 }
 
-/// Resolves an `InputRef` to the object key of a validated input and the extension to copy
-/// it with. `field` names the reference in errors.
+/// Resolves an `InputRef` to the object key of a validated input, the extension to copy it
+/// with and its kind: an upload of one of the `accepted` kinds, or an object validated as the
+/// first of them. `field` names the reference in errors.
 pub async fn resolve_input(
     shared: &Shared,
     caller: &Principal,
     field: &str,
-    kind: InputKind,
+    accepted: &[InputKind],
     input: Option<&pb::InputRef>,
-) -> Result<(String, String), Status> {
+) -> Result<(String, String, InputKind), Status> {
+    let kind = accepted[0];
     use pb::input_ref::Source;
     match input.and_then(|i| i.source.as_ref()) {
         None => Err(invalid(
@@ -389,14 +403,20 @@ pub async fn resolve_input(
                     .map_err(internal)?;
             match row {
                 Some((owner, stored_kind, key)) if caller.can_see(&owner) => {
-                    if stored_kind != kind.as_str() {
+                    let Some(kind) =
+                        InputKind::parse(&stored_kind).filter(|k| accepted.contains(k))
+                    else {
+                        let names: Vec<&str> = accepted.iter().map(|k| k.as_str()).collect();
                         return Err(invalid(
                             format!("{field}.upload_id"),
-                            format!("upload {id:?} is a {stored_kind}, not a {}", kind.as_str()),
+                            format!(
+                                "upload {id:?} is a {stored_kind}, not a {}",
+                                names.join(" or ")
+                            ),
                         ));
-                    }
+                    };
                     let extension = key.rsplit('.').next().unwrap_or("bin").to_string();
-                    Ok((key, extension))
+                    Ok((key, extension, kind))
                 }
                 _ => Err(invalid(
                     format!("{field}.upload_id"),
@@ -429,7 +449,7 @@ pub async fn resolve_input(
             let (_, extension) = validate_file(shared, kind, spool.path().to_path_buf())
                 .await?
                 .map_err(|why| invalid(&key_field, why))?;
-            Ok((key.clone(), extension.to_string()))
+            Ok((key.clone(), extension.to_string(), kind))
         }
     }
 }

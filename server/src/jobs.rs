@@ -1,4 +1,4 @@
-//! Jobs in the database: creating a job with its five stage tasks and their dependencies,
+//! Jobs in the database: creating a job with a task per stage of its source and their dependencies,
 //! loading jobs and tasks as protocol messages, listing, cancelling, and adding renders.
 
 use crate::auth::Principal;
@@ -11,6 +11,7 @@ use crate::state::Shared;
 use sqlx::{SqliteConnection, SqlitePool};
 use std::collections::HashMap;
 use std::sync::LazyLock;
+use stylenerf_plan::Source;
 use stylenerf_proto::v1 as pb;
 use tonic::Status;
 
@@ -183,8 +184,10 @@ pub async fn insert_job(
     ));
     let no_extra = serde_json::Map::new();
     let mut ids: Vec<(Stage, i64)> = Vec::new();
-    for stage in Stage::ALL {
-        let root = stage.upstream().is_empty();
+    let source = Source::of_input_key(&job.dataset_key);
+    for stage in source.stages() {
+        let upstream = source.upstream(stage);
+        let root = upstream.is_empty();
         let state = if root {
             task_state::READY
         } else {
@@ -223,8 +226,8 @@ pub async fn insert_job(
         .bind(job.priority)
         .fetch_one(&mut *conn)
         .await?;
-        // `Stage::ALL` is in dependency order: every upstream task is already inserted.
-        for (_, dep) in ids.iter().filter(|(s, _)| stage.upstream().contains(s)) {
+        // The stages come in dependency order: every upstream task is already inserted.
+        for (_, dep) in ids.iter().filter(|(s, _)| upstream.contains(s)) {
             sqlx::query("INSERT INTO task_deps (task_id, depends_on) VALUES (?, ?)")
                 .bind(id)
                 .bind(dep)

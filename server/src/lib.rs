@@ -19,6 +19,7 @@ mod inputs;
 mod jobs;
 pub mod metrics_http;
 mod model;
+mod photos;
 mod quotas;
 mod retention;
 mod rpc_metrics;

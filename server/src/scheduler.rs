@@ -17,6 +17,7 @@ use sqlx::SqliteConnection;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
+use stylenerf_plan::Source;
 use stylenerf_proto::v1 as pb;
 use tonic::Status;
 
@@ -51,10 +52,11 @@ pub async fn register_worker(
     // bound to its credentials.
     let stored = sqlx::query(
         "INSERT INTO workers (id, name, owner, device, memory_bytes, labels, max_tasks, \
-         registered_at, last_seen_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) \
+         registered_at, last_seen_at, tools) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
          ON CONFLICT (id) DO UPDATE SET name = excluded.name, \
          device = excluded.device, memory_bytes = excluded.memory_bytes, labels = excluded.labels, \
-         max_tasks = excluded.max_tasks, last_seen_at = excluded.last_seen_at \
+         max_tasks = excluded.max_tasks, last_seen_at = excluded.last_seen_at, \
+         tools = excluded.tools \
          WHERE workers.owner = excluded.owner",
     )
     .bind(&id)
@@ -66,6 +68,7 @@ pub async fn register_worker(
     .bind(caps.max_tasks.max(1) as i64)
     .bind(now)
     .bind(now)
+    .bind(serde_json::to_string(&caps.tools).unwrap_or_else(|_| "[]".into()))
     .execute(&shared.db.write)
     .await
     .map_err(internal)?;
@@ -158,6 +161,7 @@ struct WorkerRow {
     device: String,
     memory_bytes: i64,
     labels: String,
+    tools: String,
     max_tasks: i64,
     running: i64,
     reserved: i64,
@@ -236,7 +240,7 @@ async fn lease_in(
     let requeued = check_expiry && expire_leases(conn, batch, now).await?;
     let worker: Option<WorkerRow> = sqlx::query_as(
         "UPDATE workers SET last_seen_at = ? WHERE id = ? \
-         RETURNING device, memory_bytes, labels, max_tasks, \
+         RETURNING device, memory_bytes, labels, tools, max_tasks, \
          (SELECT COUNT(*) FROM tasks WHERE worker_id = workers.id AND state = 'leased') AS running, \
          (SELECT COALESCE(SUM(memory_bytes), 0) FROM tasks \
           WHERE worker_id = workers.id AND state = 'leased') AS reserved",
@@ -262,13 +266,15 @@ async fn lease_in(
     };
     let cuda = worker.device.starts_with("cuda");
     let labels: HashSet<String> = serde_json::from_str(&worker.labels).unwrap_or_default();
-    // Look at the head of the queue first; only a worker that matches none of it (labels)
-    // searches deeper.
+    let tools: HashSet<String> = serde_json::from_str(&worker.tools).unwrap_or_default();
+    // Look at the head of the queue first; only a worker that matches none of it (labels,
+    // tools) searches deeper.
     // Owners found at their running-task quota in this lease.
     let mut at_quota: HashMap<String, bool> = HashMap::new();
     for window in [8i64, 1024] {
-        let candidates: Vec<(i64, String, i64, bool, String)> = sqlx::query_as(
-            "SELECT t.id, j.labels, t.ready_at, j.require_cuda, j.owner FROM tasks t \
+        let candidates: Vec<Candidate> = sqlx::query_as(
+            "SELECT t.id, j.labels, t.ready_at, j.require_cuda, j.owner, t.stage, j.dataset_key \
+             FROM tasks t \
              JOIN jobs j ON j.id = t.job_id \
              WHERE t.state = 'ready' AND t.memory_bytes <= ? AND (j.require_cuda = 0 OR ?) \
              ORDER BY t.priority DESC, t.ready_at, t.id LIMIT ?",
@@ -280,12 +286,15 @@ async fn lease_in(
         .await?;
         let seen = candidates.len() as i64;
         let mut chosen = None;
-        for (task_id, job_labels, ready_at, require_cuda, owner) in candidates {
-            let runnable = serde_json::from_str::<Vec<String>>(&job_labels)
+        for (task_id, job_labels, ready_at, require_cuda, owner, stage, dataset_key) in candidates {
+            let labelled = serde_json::from_str::<Vec<String>>(&job_labels)
                 .unwrap_or_default()
                 .iter()
                 .all(|l| labels.contains(l));
-            if !runnable {
+            let source = Source::of_input_key(&dataset_key);
+            let equipped = Stage::parse(&stage)
+                .is_none_or(|s| s.tools(source).iter().all(|&t| tools.contains(t)));
+            if !(labelled && equipped) {
                 continue;
             }
             if let Some(quotas) = quotas {
@@ -316,6 +325,10 @@ async fn lease_in(
     }
     Ok(Ok((None, requeued)))
 }
+
+/// A ready task a worker might lease: id, the job's labels, ready time, whether the job needs
+/// CUDA, its owner, the stage and the job's scene input key (which says its source).
+type Candidate = (i64, String, i64, bool, String, String, String);
 
 /// Whether `owner` has as many tasks leased as its quota allows.
 async fn owner_at_quota(
@@ -370,11 +383,8 @@ async fn claim(
         task.attempt,
         &message,
     ));
-    // Only the first lease of a job's first stage can start it.
-    if !(task.core
-        && task.attempt == 1
-        && Stage::parse(&task.stage).is_some_and(|s| s.upstream().is_empty()))
-    {
+    // Only a first lease can start the job (the update below finds it queued only once).
+    if !(task.core && task.attempt == 1) {
         return Ok(task);
     }
     let started = sqlx::query(

@@ -39,6 +39,67 @@ pub fn validate_dataset_archive(
     reader: impl Read,
     limits: &Limits,
 ) -> Result<DatasetSummary, String> {
+    let mut scene_files: Vec<(String, Vec<u8>)> = Vec::new();
+    let walked = walk_archive(reader, limits, |path, size, entry| {
+        let file_name = path.rsplit('/').next().unwrap_or("");
+        let candidate = SceneFormat::of_marker(file_name).is_some()
+            && path.matches('/').count() <= MAX_SCENE_DEPTH;
+        if candidate {
+            if size > MAX_SCENE_FILE_BYTES {
+                return Err(format!("scene file {path:?} is larger than 64 MiB"));
+            }
+            let mut content = Vec::with_capacity(size as usize);
+            entry
+                .read_to_end(&mut content)
+                .map_err(|e| format!("member {path:?}: {e}"))?;
+            scene_files.push((path.to_string(), content));
+        }
+        Ok(())
+    })?;
+    let (members, count) = (walked.members, walked.count);
+    // As the worker finds it (the catalogue's rule).
+    let (format, scene_path) = find_scene(scene_files.iter().map(|(path, _)| path.as_str()))
+        .ok_or_else(|| NO_SCENE.to_string())?;
+    let scene_path = scene_path.to_string();
+    let content = scene_files
+        .into_iter()
+        .find(|(path, _)| *path == scene_path)
+        .map(|(_, content)| content)
+        .unwrap_or_default();
+    let dir = scene_path
+        .rsplit_once('/')
+        .map(|(d, _)| d.to_string())
+        .unwrap_or_default();
+    let frames = if format == SceneFormat::Llff {
+        check_poses_bounds(&content, &dir, &members, limits)
+    } else {
+        check_transforms(&content, &dir, &members, limits)
+    }
+    .map_err(|why| format!("{scene_path}: {why}"))?;
+    Ok(DatasetSummary {
+        format: format.name(),
+        scene_file: scene_path,
+        frames,
+        members: count,
+    })
+}
+
+/// The members of a checked archive.
+pub struct Walked {
+    /// Every member path, relative and `/`-separated.
+    pub members: HashSet<String>,
+    /// How many members there are.
+    pub count: u64,
+}
+
+/// Reads a tar archive from `reader` (buffered here), checking every member: no compression,
+/// relative paths inside the archive, only regular files and folders, each path once, counts
+/// and sizes within `limits`. `on_file(path, size, entry)` sees each regular file.
+pub fn walk_archive(
+    reader: impl Read,
+    limits: &Limits,
+    mut on_file: impl FnMut(&str, u64, &mut dyn Read) -> Result<(), String>,
+) -> Result<Walked, String> {
     let mut reader = std::io::BufReader::new(reader);
     let head = std::io::BufRead::fill_buf(&mut reader).map_err(|e| e.to_string())?;
     if let Some(kind) = compression(head) {
@@ -52,7 +113,6 @@ pub fn validate_dataset_archive(
         .entries()
         .map_err(|e| format!("not a tar archive: {}", printable(&e.to_string())))?;
     let mut members: HashSet<String> = HashSet::new();
-    let mut scene_files: Vec<(String, Vec<u8>)> = Vec::new();
     let mut count = 0u64;
     let mut total = 0u64;
     for entry in entries {
@@ -101,18 +161,8 @@ pub fn validate_dataset_archive(
                 limits.max_dataset_bytes
             ));
         }
-        let file_name = path.rsplit('/').next().unwrap_or("");
-        let candidate = SceneFormat::of_marker(file_name).is_some()
-            && path.matches('/').count() <= MAX_SCENE_DEPTH;
-        if kind.is_file() && candidate {
-            if size > MAX_SCENE_FILE_BYTES {
-                return Err(format!("scene file {raw_path:?} is larger than 64 MiB"));
-            }
-            let mut content = Vec::with_capacity(size as usize);
-            entry
-                .read_to_end(&mut content)
-                .map_err(|e| format!("member {raw_path:?}: {e}"))?;
-            scene_files.push((path.clone(), content));
+        if !kind.is_dir() {
+            on_file(&path, size, &mut entry)?;
         }
         // Unpacking keeps the last of two members with one path, while this check would
         // have read the first.
@@ -120,31 +170,7 @@ pub fn validate_dataset_archive(
             return Err(format!("member {raw_path:?} appears twice"));
         }
     }
-    // As the worker finds it (the catalogue's rule).
-    let (format, scene_path) = find_scene(scene_files.iter().map(|(path, _)| path.as_str()))
-        .ok_or_else(|| NO_SCENE.to_string())?;
-    let scene_path = scene_path.to_string();
-    let content = scene_files
-        .into_iter()
-        .find(|(path, _)| *path == scene_path)
-        .map(|(_, content)| content)
-        .unwrap_or_default();
-    let dir = scene_path
-        .rsplit_once('/')
-        .map(|(d, _)| d.to_string())
-        .unwrap_or_default();
-    let frames = if format == SceneFormat::Llff {
-        check_poses_bounds(&content, &dir, &members, limits)
-    } else {
-        check_transforms(&content, &dir, &members, limits)
-    }
-    .map_err(|why| format!("{scene_path}: {why}"))?;
-    Ok(DatasetSummary {
-        format: format.name(),
-        scene_file: scene_path,
-        frames,
-        members: count,
-    })
+    Ok(Walked { members, count })
 }
 
 /// The compression format a file starting with `head` is in, if any.

@@ -1,5 +1,7 @@
-//! `stylenerf run`: all five stages locally in one process (no server), each with its own
-//! progress bar; and `stylenerf eval`: the consistency / style-fidelity evaluation of a run.
+//! `stylenerf run`: every stage locally in one process (no server), each with its own
+//! progress bar, from a posed dataset (`--data`) or from plain photos or a video (`--photos`,
+//! which adds the `poses` stage); and `stylenerf eval`: the consistency / style-fidelity
+//! evaluation of a run.
 //!
 //! Each stage writes into `OUT/<stage>/`. A stage whose `metrics.json` exists is complete and
 //! is skipped; an interrupted stage resumes from its checkpoint. Overrides name their stage:
@@ -17,15 +19,19 @@ use stylenerf_engine::stages::Outcome;
 use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_plan::settings::parse_override;
-use stylenerf_plan::{Override, Preset, Stage};
+use stylenerf_plan::{Override, Preset, Source, Stage};
 
 use super::common::stage_progress;
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
     /// Dataset folder (nerfstudio, NeRF-synthetic/Blender or LLFF).
+    #[arg(long, required_unless_present = "photos", conflicts_with = "photos")]
+    data: Option<PathBuf>,
+    /// A folder of plain photos or a video instead of a dataset: the run starts with the
+    /// `poses` stage (COLMAP and, for a video, ffmpeg from the OS packages).
     #[arg(long)]
-    data: PathBuf,
+    photos: Option<PathBuf>,
     /// Style image (repeat for several), or `builtin:<name>` (mosaic, waves, dots).
     #[arg(long = "style", required = true)]
     styles: Vec<String>,
@@ -88,10 +94,17 @@ struct Pipeline {
     encoder: EncoderWeights,
     /// The run's folder: `<stage>/` per stage.
     run: PathBuf,
+    /// What the run starts from.
+    source: Source,
 }
 
 impl Pipeline {
-    fn new(args: &PipelineArgs, styles: &[String], run: &Path) -> anyhow::Result<Self> {
+    fn new(
+        args: &PipelineArgs,
+        styles: &[String],
+        run: &Path,
+        source: Source,
+    ) -> anyhow::Result<Self> {
         let overrides = args
             .overrides
             .iter()
@@ -108,6 +121,7 @@ impl Pipeline {
             styles,
             encoder: EncoderWeights::load_or_bundled(args.encoder.as_deref())?,
             run: run.to_path_buf(),
+            source,
         })
     }
 
@@ -126,18 +140,24 @@ impl Pipeline {
     fn run_stage(
         &self,
         config: &StageConfig,
-        data: Option<&Path>,
+        scene: Option<&Path>,
         init_decoder: Option<&Path>,
         out: &Path,
     ) -> anyhow::Result<Outcome<StageReport>> {
         let stage = config.stage();
-        let upstream: BTreeMap<Stage, PathBuf> = stage
-            .upstream()
-            .iter()
-            .map(|&of| (of, self.run.join(of.name())))
+        let upstream: BTreeMap<Stage, PathBuf> = self
+            .source
+            .upstream(stage)
+            .into_iter()
+            .map(|of| (of, self.run.join(of.name())))
             .collect();
+        let (dataset, photos) = match self.source {
+            Source::Dataset => (scene, None),
+            Source::Photos | Source::Video => (None, scene),
+        };
         let inputs = dispatch::Inputs {
-            dataset: data,
+            dataset,
+            photos,
             upstream: &upstream,
             styles: &self.styles,
             encoder: Some(&self.encoder),
@@ -173,9 +193,16 @@ impl Pipeline {
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
-    let p = Pipeline::new(&args.common, &args.styles, &args.out)?;
+    let (scene, source, flag) = match (&args.data, &args.photos) {
+        (Some(data), _) => (data, Source::Dataset, "--data"),
+        (None, Some(photos)) if photos.is_dir() => (photos, Source::Photos, "--photos"),
+        (None, Some(video)) => (video, Source::Video, "--photos"),
+        (None, None) => anyhow::bail!("give --data (a posed dataset) or --photos"),
+    };
+    let p = Pipeline::new(&args.common, &args.styles, &args.out, source)?;
     // Every configuration first, so a bad override fails before any training.
-    let configs = Stage::ALL
+    let configs = source
+        .stages()
         .into_iter()
         .map(|stage| p.config(stage, &args.render))
         .collect::<anyhow::Result<Vec<_>>>()?;
@@ -185,10 +212,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         if out.join("metrics.json").exists() {
             println!("{stage}: already complete in {}", out.display());
         } else {
+            let reads = stage.inputs();
             let outcome = p
-                .run_stage(config, Some(&args.data), args.decoder.as_deref(), &out)
-                .with_context(|| match stage.inputs().dataset {
-                    true => format!("--data {}", args.data.display()),
+                .run_stage(config, Some(scene), args.decoder.as_deref(), &out)
+                .with_context(|| match reads.dataset || reads.photos {
+                    true => format!("{flag} {}", scene.display()),
                     false => format!("--out {}", args.out.display()),
                 })?;
             if matches!(outcome, Outcome::Stopped { .. }) {
@@ -203,7 +231,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 }
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
-    let p = Pipeline::new(&args.common, &args.styles, &args.run)?;
+    let p = Pipeline::new(&args.common, &args.styles, &args.run, Source::Dataset)?;
     let config = p.config(Stage::RenderStylized, &args.render)?;
     p.run_stage(&config, None, None, &args.run.join("eval"))?;
     Ok(())

@@ -226,7 +226,8 @@ pub fn run(cmd: SceneCommand) -> anyhow::Result<()> {
             );
             let start = Instant::now();
             let control = StageControl::default();
-            let report = match poses::run(&input, &out.join("colmap"), &out, &opts, &control)? {
+            let report = match poses::run(&input, &out.join("colmap"), &out, &opts, &control, None)?
+            {
                 Outcome::Done(report) => report,
                 Outcome::Stopped { step } => anyhow::bail!("stopped after step {step}"),
             };

@@ -37,6 +37,17 @@ impl FakeWorker {
         device: &str,
         memory_bytes: u64,
     ) -> Self {
+        Self::register_with(handle, token, device, memory_bytes, &[]).await
+    }
+
+    /// Registers with the given worker token, advertising `tools` (`colmap`, `ffmpeg`).
+    pub async fn register_with(
+        handle: &CoordinatorHandle,
+        token: &str,
+        device: &str,
+        memory_bytes: u64,
+        tools: &[&str],
+    ) -> Self {
         let mut workers = worker_client(handle, Some(token)).await;
         let id = workers
             .register_worker(pb::RegisterWorkerRequest {
@@ -46,6 +57,7 @@ impl FakeWorker {
                     memory_bytes,
                     labels: vec![],
                     max_tasks: 4,
+                    tools: tools.iter().map(|t| t.to_string()).collect(),
                 }),
                 worker_id: String::new(),
             })

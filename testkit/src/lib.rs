@@ -17,7 +17,7 @@ pub use coordinator::*;
 pub use fake_worker::*;
 pub use inputs::*;
 /// The catalogue, for tests that count or list a job's stages.
-pub use stylenerf_plan::Stage;
+pub use stylenerf_plan::{Source, Stage};
 /// The protocol's messages and the status codes the tests compare with.
 pub use stylenerf_proto::v1 as pb;
 pub use tonic::Code;

@@ -1,14 +1,17 @@
 //! Unpacking a job's dataset archive (an uncompressed tar, validated by the coordinator at
 //! submission) into a scratch folder without trusting it again: only regular files and
 //! folders, every path kept inside the destination, sizes and member count bounded. Then
-//! finding the scene in it (at the root or in one folder). [`check_dataset`] does all that and
+//! finding the scene in it (at the root or in one folder), or the photos of an upload of plain
+//! photos. [`check_dataset`] does all that and
 //! loads the scene, for a coordinator to refuse at submission what a worker would refuse.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use stylenerf_engine::scene::{LoadOptions, Scene};
-use stylenerf_plan::scene_format::{find_scene, MAX_SCENE_DEPTH, NO_SCENE};
+use stylenerf_plan::scene_format::{
+    find_photos, find_scene, MAX_SCENE_DEPTH, MIN_PHOTOS, NO_SCENE,
+};
 
 use crate::error::TaskError;
 
@@ -80,6 +83,29 @@ pub fn unpack(
 /// The folder holding the scene, by the catalogue's rule ([`find_scene`]): `dir` itself or the
 /// shallowest folder below it (two levels at most) with a scene file.
 pub fn scene_root(dir: &Path) -> Result<PathBuf, TaskError> {
+    let files = relative_files(dir);
+    let (_, marker) = find_scene(files.iter().map(String::as_str))
+        .ok_or_else(|| TaskError::permanent(format!("dataset archive: {NO_SCENE}")))?;
+    Ok(dir.join(marker).parent().unwrap_or(dir).to_path_buf())
+}
+
+/// The folder holding the photos of an unpacked upload of plain photos, by the catalogue's
+/// rule ([`find_photos`]).
+pub fn photos_root(dir: &Path) -> Result<PathBuf, TaskError> {
+    let files = relative_files(dir);
+    match find_photos(files.iter().map(String::as_str)) {
+        Some((folder, n)) if n >= MIN_PHOTOS => Ok(dir.join(folder)),
+        found => Err(TaskError::permanent(format!(
+            "photos archive: {} PNG/JPEG photos in one folder; camera poses need at least \
+             {MIN_PHOTOS}",
+            found.map_or(0, |(_, n)| n)
+        ))),
+    }
+}
+
+/// The files of `dir` and of its folders down to [`MAX_SCENE_DEPTH`] levels, as
+/// `/`-separated relative paths.
+fn relative_files(dir: &Path) -> Vec<String> {
     let mut files = Vec::new();
     let mut level = vec![PathBuf::new()];
     for _ in 0..=MAX_SCENE_DEPTH {
@@ -92,16 +118,14 @@ pub fn scene_root(dir: &Path) -> Result<PathBuf, TaskError> {
                 let path = rel.join(entry.file_name());
                 match entry.file_type() {
                     Ok(t) if t.is_dir() => next.push(path),
-                    Ok(t) if t.is_file() => files.push(path.to_string_lossy().into_owned()),
+                    Ok(t) if t.is_file() => files.push(path.to_string_lossy().replace('\\', "/")),
                     _ => {}
                 }
             }
         }
         level = next;
     }
-    let (_, marker) = find_scene(files.iter().map(String::as_str))
-        .ok_or_else(|| TaskError::permanent(format!("dataset archive: {NO_SCENE}")))?;
-    Ok(dir.join(marker).parent().unwrap_or(dir).to_path_buf())
+    files
 }
 
 /// Working resolution of [`check_dataset`]: every image and depth map is still decoded, but

@@ -11,7 +11,7 @@ use candle_core::Device;
 use stylenerf_engine::checkpoint::CheckpointDir;
 use stylenerf_engine::stages::{Outcome, StageControl};
 use stylenerf_engine::EngineError;
-use stylenerf_plan::Stage;
+use stylenerf_plan::{Source, Stage};
 use stylenerf_proto::v1 as pb;
 
 use crate::archive::{self, ArchiveLimits};
@@ -56,26 +56,50 @@ pub struct TaskContext {
 impl TaskContext {
     /// Downloads and unpacks the dataset archive; returns the scene folder.
     pub async fn dataset(&self) -> Result<PathBuf, TaskError> {
-        let key = &self.assignment.dataset_key;
         self.tracker.set_message("downloading the dataset");
-        let tar = self.inputs.join("scene.tar");
-        self.store.download(key, "", &tar).await?;
-        let dest = self.inputs.join("dataset");
-        let name = key.clone();
+        let dest = self.unpack_input("dataset").await?;
+        tokio::task::spawn_blocking(move || archive::scene_root(&dest))
+            .await
+            .map_err(|e| TaskError::retryable(format!("finding the scene: {e}")))?
+    }
+
+    /// Downloads the job's plain photos (unpacked; returns their folder) or video (returns
+    /// the file).
+    pub async fn photos(&self) -> Result<PathBuf, TaskError> {
+        self.tracker.set_message("downloading the photos");
+        let key = &self.assignment.dataset_key;
+        if Source::of_input_key(key) == Source::Video {
+            let name = key.rsplit('/').next().unwrap_or("video");
+            let path = self.inputs.join(name);
+            self.store.download(key, "", &path).await?;
+            return Ok(path);
+        }
+        let dest = self.unpack_input("photos").await?;
+        tokio::task::spawn_blocking(move || archive::photos_root(&dest))
+            .await
+            .map_err(|e| TaskError::retryable(format!("finding the photos: {e}")))?
+    }
+
+    /// Downloads the job's scene archive and unpacks it into `inputs/<name>/`.
+    async fn unpack_input(&self, name: &str) -> Result<PathBuf, TaskError> {
+        let key = self.assignment.dataset_key.clone();
+        let tar = self.inputs.join(format!("{name}.tar"));
+        self.store.download(&key, "", &tar).await?;
+        let dest = self.inputs.join(name);
         tokio::task::spawn_blocking(move || -> Result<PathBuf, TaskError> {
             let file = std::fs::File::open(&tar)
                 .map_err(|e| TaskError::retryable(format!("{}: {e}", tar.display())))?;
             archive::unpack(
                 std::io::BufReader::new(file),
                 &dest,
-                &name,
+                &key,
                 ArchiveLimits::default(),
             )?;
             let _ = std::fs::remove_file(&tar);
-            archive::scene_root(&dest)
+            Ok(dest)
         })
         .await
-        .map_err(|e| TaskError::retryable(format!("unpacking the dataset: {e}")))?
+        .map_err(|e| TaskError::retryable(format!("unpacking {name}: {e}")))?
     }
 
     /// Downloads the outputs of the upstream `stage` into `inputs/<stage>/`; returns that

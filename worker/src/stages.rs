@@ -14,7 +14,7 @@ use stylenerf_engine::stages::dispatch::{self, PathRequest, StageConfig};
 use stylenerf_engine::stages::Outcome;
 use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::weights::EncoderWeights;
-use stylenerf_plan::Stage;
+use stylenerf_plan::{Source, Stage};
 use stylenerf_proto::v1 as pb;
 
 use crate::context::{Metrics, TaskContext};
@@ -44,14 +44,20 @@ pub async fn run_stage(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskError>
         }
     }
     let reads = stage.inputs();
-    let dataset = match reads.dataset {
+    let source = Source::of_input_key(&ctx.assignment.dataset_key);
+    let mut upstream = BTreeMap::new();
+    for of in source.upstream(stage) {
+        upstream.insert(of, ctx.upstream(of).await?);
+    }
+    // A job from photos reads its posed dataset from the poses stage's outputs.
+    let dataset = match reads.dataset && source == Source::Dataset {
         true => Some(ctx.dataset().await?),
         false => None,
     };
-    let mut upstream = BTreeMap::new();
-    for &of in stage.upstream() {
-        upstream.insert(of, ctx.upstream(of).await?);
-    }
+    let photos = match reads.photos {
+        true => Some(ctx.photos().await?),
+        false => None,
+    };
     let style_paths = match reads.styles {
         true => ctx.styles().await?,
         false => Vec::new(),
@@ -65,6 +71,7 @@ pub async fn run_stage(ctx: &TaskContext) -> Result<Outcome<Metrics>, TaskError>
         };
         let inputs = dispatch::Inputs {
             dataset: dataset.as_deref(),
+            photos: photos.as_deref(),
             upstream: &upstream,
             styles: &styles,
             encoder: encoder.as_ref(),

@@ -77,6 +77,7 @@ impl Worker {
             memory_bytes: config.memory_bytes,
             labels: config.labels.clone(),
             max_tasks: config.max_tasks.max(1) as u32,
+            tools: advertised_tools(),
         };
         let mut worker = Self {
             clients,
@@ -325,4 +326,23 @@ impl Worker {
             tracing::warn!(task_id = task.task_id, error = %s, "FailTask was refused");
         }
     }
+}
+
+/// The stages' programs found here (logged, with why a missing one is missing: such a worker
+/// is not handed the stages that need it).
+fn advertised_tools() -> Vec<String> {
+    let mut tools = Vec::new();
+    for (name, found) in stylenerf_engine::poses::installed_tools() {
+        match found {
+            Ok(tool) => {
+                tracing::info!(tool = name, program = %tool.program.display(), "found");
+                tools.push(name.to_string());
+            }
+            Err(e) => tracing::warn!(
+                tool = name,
+                "{e}; this worker will not be handed the tasks that need {name}"
+            ),
+        }
+    }
+    tools
 }

@@ -23,7 +23,11 @@ async fn runs_every_stage_and_stores_its_artifacts() {
     let coordinator = coordinator(dir.path()).await;
     let job = submit(&coordinator, dir.path(), serde_json::json!({}), 0).await;
     let mut worker = spawn_worker(worker_config(&coordinator, dir.path())).await;
-    for expected in stylenerf_testkit::Stage::ALL.map(pb::Stage::from) {
+    for expected in stylenerf_testkit::Source::Dataset
+        .stages()
+        .into_iter()
+        .map(pb::Stage::from)
+    {
         let (stage, result) = worker.wait_for(Duration::from_secs(180), finished).await;
         assert_eq!(stage, expected);
         let TaskResult::Completed { outputs, metrics } = result else {

@@ -11,9 +11,7 @@ use super::tools::Tool;
 use crate::image_io::image_files;
 use crate::stages::StageControl;
 use crate::{EngineError, Result};
-
-/// File extensions read as videos.
-const VIDEO_EXTENSIONS: [&str; 7] = ["mp4", "mov", "m4v", "mkv", "avi", "webm", "mts"];
+use stylenerf_plan::stage::VIDEO_EXTENSIONS;
 
 /// The kind of input, which also decides how COLMAP matches the images.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -68,7 +66,7 @@ pub fn photos(dir: &Path) -> Result<Vec<String>> {
 }
 
 /// How frames are taken from a video.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
 pub struct VideoSampling {
     /// Candidate frames per second of video.
     pub fps: f32,

@@ -5,6 +5,9 @@
 //! nerfstudio dataset at the working resolution ([`dataset`]) with a report of what was
 //! registered. Each COLMAP step is a checkpoint: its state (the database, the models) stays in
 //! the work folder, and a run that was stopped or killed resumes at the first unfinished step.
+//! As the service's `poses` stage ([`crate::stages::dispatch`]) the work folder is also saved
+//! after each step as a folder checkpoint ([`CheckpointDir::save_folder`]), which the worker
+//! uploads, so another worker resumes where this one stopped.
 //! When registration fails or covers too few images the error says so, with the likely cause.
 
 pub mod align;
@@ -21,9 +24,9 @@ use serde::{Deserialize, Serialize};
 
 pub use input::{InputKind, VideoSampling};
 use model::SparseModel;
-pub use tools::Tool;
+pub use tools::{installed as installed_tools, Tool};
 
-use crate::checkpoint::write_json_atomic;
+use crate::checkpoint::{write_json_atomic, CheckpointDir};
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::{EngineError, Result};
 
@@ -66,8 +69,8 @@ impl CameraModel {
     }
 }
 
-/// What `from-photos` does.
-#[derive(Debug, Clone)]
+/// What `from-photos` and the `poses` stage do.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PosesOptions {
     /// Longest side of the dataset's images (the working resolution).
     pub max_side: u32,
@@ -100,7 +103,24 @@ impl Default for PosesOptions {
     }
 }
 
-/// What a run recovered (also written as `poses_report.json` beside `transforms.json`).
+impl PosesOptions {
+    /// The `poses` stage's settings for `preset`: `tiny` (tests) works on small images and
+    /// few features; the others as `from-photos`.
+    pub fn preset(preset: stylenerf_plan::Preset) -> Self {
+        match preset {
+            stylenerf_plan::Preset::Tiny => Self {
+                max_side: 256,
+                feature_max_side: 1024,
+                max_features: 4096,
+                ..Self::default()
+            },
+            _ => Self::default(),
+        }
+    }
+}
+
+/// What a run recovered (also written as `poses_report.json` beside `transforms.json`, and
+/// its numbers as `metrics.json`, written last).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PosesReport {
     pub input: String,
@@ -136,13 +156,16 @@ struct Checkpoint {
 }
 
 /// Recovers camera poses for `input` (a folder of photos or a video) and writes a nerfstudio
-/// dataset into `out`, keeping COLMAP's state in `work` (resumable).
+/// dataset into `out`, keeping COLMAP's state in `work` (resumable). With `snapshots`, the
+/// work folder is also saved there after each step, and restored from there when `work` has
+/// no state of its own (a task resumed on another worker).
 pub fn run(
     input: &Path,
     work: &Path,
     out: &Path,
     opts: &PosesOptions,
     control: &StageControl,
+    snapshots: Option<&CheckpointDir>,
 ) -> Result<Outcome<PosesReport>> {
     let kind = InputKind::of(input)?;
     let colmap = Tool::colmap()?;
@@ -165,6 +188,11 @@ pub fn run(
         ));
     }
     let ck_path = work.join("poses_checkpoint.json");
+    if let (false, Some(dir)) = (ck_path.exists(), snapshots) {
+        if let Some((step, ())) = dir.restore_folder(work)? {
+            tracing::info!(step, "COLMAP's state restored from its checkpoint");
+        }
+    }
     let mut ck: Checkpoint = match std::fs::read(&ck_path) {
         Ok(bytes) => serde_json::from_slice(&bytes)
             .map_err(|e| EngineError::artifact(&ck_path, format!("unreadable: {e}")))?,
@@ -267,6 +295,7 @@ pub fn run(
                     ..report
                 };
                 write_json_atomic(&out.join("poses_report.json"), &report)?;
+                write_json_atomic(&out.join("metrics.json"), &report.metrics())?;
                 ck.done.push(step.into());
                 write_json_atomic(&ck_path, &ck)?;
                 return Ok(Outcome::Done(report));
@@ -277,6 +306,9 @@ pub fn run(
             .insert(step.into(), start.elapsed().as_secs_f64());
         ck.done.push(step.into());
         write_json_atomic(&ck_path, &ck)?;
+        if let Some(dir) = snapshots {
+            dir.save_folder(k as u64 + 1, work, &())?;
+        }
         if control.should_stop(k as u64 + 1) {
             return Ok(Outcome::Stopped { step: k as u64 + 1 });
         }
@@ -287,6 +319,20 @@ pub fn run(
     serde_json::from_slice(&bytes)
         .map(Outcome::Done)
         .map_err(|e| EngineError::artifact(&report_path, format!("unreadable: {e}")))
+}
+
+impl PosesReport {
+    /// The report's headline numbers by name.
+    pub fn metrics(&self) -> BTreeMap<String, f64> {
+        BTreeMap::from([
+            ("images".into(), self.images as f64),
+            ("registered".into(), self.registered as f64),
+            ("mean_reprojection_px".into(), self.mean_reprojection_px),
+            ("points".into(), self.points as f64),
+            ("mean_features".into(), self.mean_features),
+            ("seconds".into(), self.seconds.values().sum()),
+        ])
+    }
 }
 
 fn resolve_matcher(m: Matcher, kind: InputKind, images: usize) -> Matcher {

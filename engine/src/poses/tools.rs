@@ -17,6 +17,15 @@ pub struct Tool {
     pub program: PathBuf,
 }
 
+/// The stages' programs installed here, by their catalogue names (`colmap`, `ffmpeg`), each
+/// with where it is or why it is missing: what a worker advertises and logs at start.
+pub fn installed() -> Vec<(&'static str, Result<Tool>)> {
+    vec![
+        (stylenerf_plan::stage::COLMAP, Tool::colmap()),
+        (stylenerf_plan::stage::FFMPEG, Tool::ffmpeg()),
+    ]
+}
+
 impl Tool {
     /// COLMAP: `$STYLENERF_COLMAP`, else `colmap` on the `PATH`.
     pub fn colmap() -> Result<Self> {

@@ -13,7 +13,9 @@ use serde::Serialize;
 use stylenerf_plan::settings::{configure, flatten_overrides};
 use stylenerf_plan::{Override, Preset, Stage};
 
+use crate::checkpoint::CheckpointDir;
 use crate::field::saved;
+use crate::poses::{self, PosesOptions, PosesReport};
 use crate::scene::Scene;
 use crate::stages::camera_paths::{camera_path, PathKind};
 use crate::stages::decoder_pretrain::{self, DecoderPretrainConfig, DecoderPretrainReport};
@@ -30,6 +32,7 @@ use crate::{EngineError, Result};
 /// A stage's configuration, typed by its stage.
 #[derive(Debug, Clone)]
 pub enum StageConfig {
+    Poses(PosesOptions),
     NerfPretrain(NerfConfig),
     RenderViews(RenderViewsConfig),
     DecoderPretrain(DecoderPretrainConfig),
@@ -42,6 +45,9 @@ impl StageConfig {
     /// (`<stage>.<key>`), within its bounds. Errors name the full key.
     pub fn new(stage: Stage, preset: Preset, overrides: &[Override]) -> Result<Self> {
         Ok(match stage {
+            Stage::Poses => {
+                Self::Poses(configure(&PosesOptions::preset(preset), stage, overrides)?)
+            }
             Stage::NerfPretrain => {
                 Self::NerfPretrain(configure(&NerfConfig::preset(preset), stage, overrides)?)
             }
@@ -68,6 +74,7 @@ impl StageConfig {
 
     pub fn stage(&self) -> Stage {
         match self {
+            Self::Poses(_) => Stage::Poses,
             Self::NerfPretrain(_) => Stage::NerfPretrain,
             Self::RenderViews(_) => Stage::RenderViews,
             Self::DecoderPretrain(_) => Stage::DecoderPretrain,
@@ -81,8 +88,11 @@ impl StageConfig {
 /// [`Stage::upstream`]) says which of these a stage needs; the others may be left empty.
 #[derive(Debug, Clone, Copy)]
 pub struct Inputs<'a> {
-    /// The job's dataset folder.
+    /// The job's dataset folder (in a job from photos, `nerf_pretrain` reads the `poses`
+    /// stage's output instead).
     pub dataset: Option<&'a Path>,
+    /// The job's photos: a folder of images or a video file.
+    pub photos: Option<&'a Path>,
     /// The output folder of each upstream stage.
     pub upstream: &'a BTreeMap<Stage, PathBuf>,
     /// The job's styles, in the job's order.
@@ -105,6 +115,7 @@ pub struct PathRequest {
 /// A stage's report, typed by its stage.
 #[derive(Debug, Clone)]
 pub enum StageReport {
+    Poses(PosesReport),
     NerfPretrain(NerfReport),
     RenderViews { views: usize },
     DecoderPretrain(DecoderPretrainReport),
@@ -116,6 +127,7 @@ impl StageReport {
     /// The report's headline numbers (PSNR, seconds, losses, counts) by name.
     pub fn metrics(&self) -> BTreeMap<String, f64> {
         match self {
+            Self::Poses(r) => r.metrics(),
             Self::NerfPretrain(r) => numeric_fields(r),
             Self::RenderViews { views } => BTreeMap::from([("views".into(), *views as f64)]),
             Self::DecoderPretrain(r) => numeric_fields(r),
@@ -161,9 +173,22 @@ pub fn run(
             .ok_or_else(|| EngineError::config(stage.name(), "needs the 2D encoder's weights"))
     };
     Ok(match config {
+        StageConfig::Poses(cfg) => {
+            let photos = inputs.photos.ok_or_else(|| {
+                EngineError::config(stage.name(), "needs the job's photos or video")
+            })?;
+            // COLMAP's state lives under ckpt/ (never an output) and is checkpointed there.
+            let ckpt = CheckpointDir::new(out.join("ckpt"), 1);
+            let work = ckpt.path().join("work");
+            poses::run(photos, &work, out, cfg, control, Some(&ckpt))?.map(StageReport::Poses)
+        }
         StageConfig::NerfPretrain(cfg) => {
+            // A job from photos trains on the dataset its poses stage wrote.
             let data = inputs
-                .dataset
+                .upstream
+                .get(&Stage::Poses)
+                .map(PathBuf::as_path)
+                .or(inputs.dataset)
                 .ok_or_else(|| EngineError::config(stage.name(), "needs the job's dataset"))?;
             let scene = Scene::load(data, &cfg.load_options())?;
             nerf_pretrain::run(&scene, cfg, out, control, device)?.map(StageReport::NerfPretrain)
@@ -329,6 +354,7 @@ mod tests {
         let none = BTreeMap::new();
         let inputs = Inputs {
             dataset: None,
+            photos: None,
             upstream: &none,
             styles: &[],
             encoder: None,

@@ -13,6 +13,7 @@ use crate::storage::{check_key, check_prefix};
 use futures::FutureExt;
 use std::pin::Pin;
 use std::sync::Arc;
+use stylenerf_plan::Source;
 use stylenerf_proto::v1 as pb;
 use stylenerf_proto::v1::job_service_server::JobService;
 use tokio::sync::{broadcast, mpsc};
@@ -145,6 +146,24 @@ async fn cuda_worker_live(shared: &Shared) -> Result<bool, Status> {
     Ok(live > 0)
 }
 
+/// Whether a live worker advertises every one of `tools`.
+async fn tools_worker_live(shared: &Shared, tools: &[&str]) -> Result<bool, Status> {
+    if tools.is_empty() {
+        return Ok(true);
+    }
+    let since = now_ms() - shared.config.worker_timeout.as_millis() as i64;
+    let advertised: Vec<String> =
+        sqlx::query_scalar("SELECT tools FROM workers WHERE last_seen_at >= ?")
+            .bind(since)
+            .fetch_all(&shared.db.read)
+            .await
+            .map_err(internal)?;
+    Ok(advertised.iter().any(|json| {
+        let have: Vec<String> = serde_json::from_str(json).unwrap_or_default();
+        tools.iter().all(|t| have.iter().any(|h| h == t))
+    }))
+}
+
 /// Text that other people's terminals and pages show must not carry control characters
 /// (escape sequences, carriage returns, NUL).
 fn no_control_characters(field: &str, value: &str, violations: &mut Vec<Violation>) {
@@ -271,14 +290,19 @@ impl JobApi {
                 });
             }
         }
-        let (dataset_source, _) = resolve_input(
+        let (dataset_source, dataset_extension, dataset_kind) = resolve_input(
             shared,
             caller,
             "dataset",
-            InputKind::Dataset,
+            &[InputKind::Dataset, InputKind::Photos],
             req.dataset.as_ref(),
         )
         .await?;
+        let source = match (dataset_kind, dataset_extension.as_str()) {
+            (InputKind::Photos, "tar") => Source::Photos,
+            (InputKind::Photos, _) => Source::Video,
+            _ => Source::Dataset,
+        };
         let mut style_sources = Vec::new();
         for (i, style) in req.styles.iter().enumerate() {
             style_sources.push(
@@ -286,10 +310,11 @@ impl JobApi {
                     shared,
                     caller,
                     &format!("styles[{i}]"),
-                    InputKind::Style,
+                    &[InputKind::Style],
                     Some(style),
                 )
-                .await?,
+                .await
+                .map(|(key, extension, _)| (key, extension))?,
             );
         }
         let mut input_bytes = shared.storage.size(&dataset_source).await?;
@@ -304,7 +329,10 @@ impl JobApi {
         )
         .await?;
         let job_id = format!("j-{}", uuid::Uuid::now_v7().simple());
-        let dataset_key = format!("jobs/{job_id}/inputs/scene.tar");
+        let dataset_key = format!(
+            "jobs/{job_id}/inputs/{}",
+            source.input_name(&dataset_extension)
+        );
         shared
             .storage
             .copy(&dataset_source, &dataset_key)
@@ -316,11 +344,23 @@ impl JobApi {
             shared.storage.copy(source, &key).await.map_err(internal)?;
             style_keys.push(key);
         }
+        let tools: Vec<&str> = source
+            .stages()
+            .iter()
+            .flat_map(|s| s.tools(source).iter().copied())
+            .collect();
         let note = if requirements.require_cuda && !cuda_worker_live(shared).await? {
             "job accepted; it requires CUDA and no CUDA worker is connected: it waits until one \
              registers"
+                .to_string()
+        } else if !tools_worker_live(shared, &tools).await? {
+            format!(
+                "job accepted; its poses stage needs a worker with {} and none is connected: it \
+                 waits until one registers",
+                tools.join(" and ")
+            )
         } else {
-            "job accepted"
+            "job accepted".to_string()
         };
         let new_job = NewJob {
             id: job_id.clone(),
@@ -333,7 +373,7 @@ impl JobApi {
             style_keys,
             idempotency_key: idempotency_key.clone(),
             render,
-            note: note.to_string(),
+            note,
             webhook,
             metadata: req.metadata.clone().into_iter().collect(),
             priority: req.priority,

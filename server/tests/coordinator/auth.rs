@@ -59,7 +59,7 @@ async fn roles_and_tokens_are_enforced() {
         .unwrap()
         .into_inner();
     assert_eq!(all.jobs.len(), 1);
-    assert_eq!(all.jobs[0].tasks.len(), Stage::ALL.len());
+    assert_eq!(all.jobs[0].tasks.len(), Source::Dataset.stages().len());
 
     // A worker token cannot use the job API; a client token cannot use the worker APIs.
     let mut as_worker = jobs_client(&server, Some(WORKER)).await;

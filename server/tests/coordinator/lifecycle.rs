@@ -370,6 +370,7 @@ async fn a_worker_advertising_an_unknown_device_is_refused_naming_it() {
             memory_bytes: 0,
             labels: Vec::new(),
             max_tasks: 1,
+            tools: Vec::new(),
         }),
         worker_id: String::new(),
     };
@@ -382,4 +383,101 @@ async fn a_worker_advertising_an_unknown_device_is_refused_naming_it() {
     for good in ["cpu", "cuda", "cuda:1"] {
         workers.register_worker(register(good)).await.unwrap();
     }
+}
+
+/// Creates a job from an upload of plain photos or a video (`filename`, `data`).
+async fn job_from_photos(
+    client: &mut pb::job_service_client::JobServiceClient<Authed>,
+    filename: &str,
+    data: &[u8],
+) -> pb::Job {
+    let receipt = upload(client, pb::UploadKind::Photos, filename, data)
+        .await
+        .expect("photos accepted");
+    let mut request = job_request(client).await;
+    request.dataset = Some(uploaded(&receipt));
+    create(client, request).await
+}
+
+#[tokio::test]
+async fn a_job_from_photos_starts_with_poses_on_a_worker_that_has_colmap() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(config(dir.path())).await;
+    let mut client = jobs_client(&server, Some(ALICE)).await;
+    let photo = png(32, 24);
+    let photos = tar_of(&[
+        ("trip/a.png", &photo),
+        ("trip/b.png", &photo),
+        ("trip/c.png", &photo),
+    ]);
+    let job = job_from_photos(&mut client, "trip.tar", &photos).await;
+    assert_eq!(
+        job.dataset_key,
+        format!("jobs/{}/inputs/photos.tar", job.id)
+    );
+    assert_eq!(job.tasks.len(), Source::Photos.stages().len());
+    let first = client
+        .watch_job(pb::WatchJobRequest {
+            job_id: job.id.clone(),
+            after_seq: 0,
+            skip_progress: true,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .next()
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(
+        first.message.contains("needs a worker with colmap"),
+        "{}",
+        first.message
+    );
+
+    // Only a worker that advertises COLMAP is handed the poses task.
+    let mut plain = FakeWorker::register(&server, "cpu", 0).await;
+    assert!(plain.lease(300).await.is_none());
+    let mut equipped = FakeWorker::register_with(&server, WORKER, "cpu", 0, &["colmap"]).await;
+    let poses = equipped.run_one().await;
+    assert_eq!(poses.stage(), pb::Stage::Poses);
+    assert!(poses.inputs.is_empty());
+    assert_eq!(poses.dataset_key, job.dataset_key);
+    // Then nerf_pretrain, on the poses stage's output, on any worker.
+    let nerf = plain.lease(2000).await.expect("nerf_pretrain is ready");
+    assert_eq!(nerf.stage(), pb::Stage::NerfPretrain);
+    let handed: Vec<pb::Stage> = nerf.inputs.iter().map(|i| i.stage()).collect();
+    assert_eq!(handed, [pb::Stage::Poses]);
+    assert_eq!(
+        get_job(&mut client, &job.id).await.state(),
+        pb::JobState::Running
+    );
+
+    // A video also needs ffmpeg.
+    let mp4 = [&[0, 0, 0, 0x20][..], b"ftypisom", &[0; 200]].concat();
+    let video = job_from_photos(&mut client, "walk.mp4", &mp4).await;
+    assert_eq!(
+        video.dataset_key,
+        format!("jobs/{}/inputs/video.mp4", video.id)
+    );
+    assert!(equipped.lease(300).await.is_none());
+    let mut both =
+        FakeWorker::register_with(&server, WORKER, "cpu", 0, &["colmap", "ffmpeg"]).await;
+    let task = both.lease(2000).await.expect("the video's poses task");
+    assert_eq!(
+        (task.stage(), task.job_id.as_str()),
+        (pb::Stage::Poses, video.id.as_str())
+    );
+
+    // Photos are refused at upload, naming why, when a worker would refuse them.
+    let err = upload(
+        &mut client,
+        pb::UploadKind::Photos,
+        "two.tar",
+        &tar_of(&[("a.png", &photo), ("b.png", &photo)]),
+    )
+    .await
+    .unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().contains("at least 3"), "{}", err.message());
 }

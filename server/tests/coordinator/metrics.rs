@@ -93,6 +93,7 @@ async fn metrics_split_the_queue_by_device_class_and_labels() {
                 memory_bytes: 0,
                 labels: vec!["a100".into(), "zone-metrics-b".into()],
                 max_tasks: 4,
+                tools: Vec::new(),
             }),
             worker_id: String::new(),
         })

@@ -189,7 +189,7 @@ async fn the_page_and_its_json_api_work_like_the_grpc_api() {
     let id = created["job"]["id"].as_str().unwrap().to_string();
     assert_eq!(
         created["job"]["tasks"].as_array().unwrap().len(),
-        Stage::ALL.len()
+        Source::Dataset.stages().len()
     );
     assert_eq!(created["job"]["state"], "JOB_STATE_QUEUED");
     let (status, listed) = web.call(Some(ALICE), "ListJobs", json!({})).await;

@@ -2,7 +2,7 @@
 //! heartbeats, a generated 32×32 scene and a style image uploaded as a job, workers configured
 //! for tests, and helpers to wait for worker events and look at jobs and the store.
 
-#![allow(dead_code)]
+#![allow(dead_code, unused_imports)]
 
 use std::path::Path;
 use std::time::{Duration, Instant};
