@@ -8,7 +8,7 @@ use crate::spec::{
     overrides_json, Input, JobPage, JobSpec, ListFilter, RenderSpec, Submission, WatchOptions,
 };
 use crate::transport::{connect_channel, AuthedChannel, Bearer, ConnectOptions};
-use crate::upload::{append_stream, prepare_dataset, prepare_file, PreparedUpload};
+use crate::upload::{append_stream, prepare_dataset, prepare_file, prepare_photos, PreparedUpload};
 use crate::watch::backoff;
 use crate::watch::EventStream;
 use futures::StreamExt;
@@ -189,6 +189,15 @@ impl Client {
             .await
     }
 
+    /// Uploads a scene without camera poses: a folder of photos (packed into a tar archive;
+    /// PNG or JPEG, at least 3 in one folder), a `.tar` of one, or a video (MP4, MOV, MKV,
+    /// WebM, AVI, MTS). A job on it starts with the `poses` stage. Returns the receipt.
+    pub async fn upload_photos(&self, path: impl AsRef<Path>) -> Result<pb::UploadReceipt> {
+        let path = path.as_ref().to_path_buf();
+        let prepared = blocking(move || prepare_photos(&path)).await?;
+        self.send_upload(&prepared, pb::UploadKind::Photos).await
+    }
+
     /// Uploads one style image (PNG, JPEG, GIF or WebP).
     pub async fn upload_style(&self, path: impl AsRef<Path>) -> Result<pb::UploadReceipt> {
         let path = path.as_ref().to_path_buf();
@@ -209,10 +218,10 @@ impl Client {
             Input::UploadId(id) => Source::UploadId(id.clone()),
             Input::ObjectKey(key) => Source::ObjectKey(key.clone()),
             Input::Path(path) => {
-                let receipt = if kind == pb::UploadKind::DatasetArchive {
-                    self.upload_dataset(path).await?
-                } else {
-                    self.upload_style(path).await?
+                let receipt = match kind {
+                    pb::UploadKind::DatasetArchive => self.upload_dataset(path).await?,
+                    pb::UploadKind::Photos => self.upload_photos(path).await?,
+                    _ => self.upload_style(path).await?,
                 };
                 let id = receipt.upload_id.clone();
                 uploads.push(receipt);
@@ -226,18 +235,29 @@ impl Client {
 
     /// Uploads the spec's local inputs and creates the job.
     pub async fn submit(&self, spec: &JobSpec) -> Result<Submission> {
-        let dataset = spec.dataset.as_ref().ok_or_else(|| {
-            ClientError::InvalidInput("a job needs a dataset (a scene folder or .tar)".into())
-        })?;
+        let (dataset, kind) = match (&spec.dataset, &spec.photos) {
+            (Some(dataset), None) => (dataset, pb::UploadKind::DatasetArchive),
+            (None, Some(photos)) => (photos, pb::UploadKind::Photos),
+            (Some(_), Some(_)) => {
+                return Err(ClientError::InvalidInput(
+                    "a job starts from a dataset or from photos, not both".into(),
+                ))
+            }
+            (None, None) => {
+                return Err(ClientError::InvalidInput(
+                    "a job needs a dataset (a scene folder or .tar) or photos (a folder of \
+                     photos or a video)"
+                        .into(),
+                ))
+            }
+        };
         if spec.styles.is_empty() {
             return Err(ClientError::InvalidInput(
                 "a job needs at least one style image".into(),
             ));
         }
         let mut uploads = Vec::new();
-        let dataset = self
-            .input_ref(dataset, pb::UploadKind::DatasetArchive, &mut uploads)
-            .await?;
+        let dataset = self.input_ref(dataset, kind, &mut uploads).await?;
         let mut styles = Vec::with_capacity(spec.styles.len());
         for style in &spec.styles {
             styles.push(

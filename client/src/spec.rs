@@ -42,8 +42,11 @@ impl From<&std::path::Path> for Input {
 pub struct JobSpec {
     /// Display name (optional).
     pub name: String,
-    /// The scene dataset.
+    /// The scene dataset (with camera poses).
     pub dataset: Option<Input>,
+    /// Or plain photos instead: a folder of photos (packed into a tar archive), a `.tar` of
+    /// one, or a video; the job then starts with the `poses` stage (COLMAP on a worker).
+    pub photos: Option<Input>,
     /// One or more style images.
     pub styles: Vec<Input>,
     /// `tiny`, `quick`, `standard` or `paper`; `None` = the coordinator's default (`quick`).

@@ -8,6 +8,7 @@ use futures::Stream;
 use sha2::{Digest, Sha256};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
+use stylenerf_plan::scene_format::{find_photos, MIN_PHOTOS};
 use stylenerf_proto::v1 as pb;
 
 /// Size of each data message (the coordinator accepts at most 1 MiB).
@@ -74,7 +75,7 @@ fn is_hidden(name: &std::ffi::OsStr) -> bool {
 
 /// Regular files under `dir` (following symbolic links), relative `/`-separated paths in
 /// sorted order, hidden entries skipped.
-fn scene_members(dir: &Path) -> Result<Vec<(String, PathBuf)>> {
+fn folder_members(dir: &Path) -> Result<Vec<(String, PathBuf)>> {
     let mut out = Vec::new();
     let mut stack = vec![(String::new(), dir.to_path_buf())];
     while let Some((prefix, folder)) = stack.pop() {
@@ -113,7 +114,7 @@ fn scene_members(dir: &Path) -> Result<Vec<(String, PathBuf)>> {
 /// Packs the scene folder `dir` into a temporary tar archive (members relative to `dir`).
 /// Fails early when no scene file is at the folder's root or one level down.
 pub fn pack_scene(dir: &Path) -> Result<PreparedUpload> {
-    let members = scene_members(dir)?;
+    let members = folder_members(dir)?;
     let has_scene = members.iter().any(|(relative, _)| {
         let depth = relative.matches('/').count();
         let name = relative.rsplit('/').next().unwrap_or_default();
@@ -126,6 +127,27 @@ pub fn pack_scene(dir: &Path) -> Result<PreparedUpload> {
             SCENE_FILES.join(", ")
         )));
     }
+    pack(dir, &members, "scene")
+}
+
+/// Packs a folder of plain photos into a temporary tar archive (members relative to `dir`).
+/// Fails early when no folder in it holds the photos poses need (the catalogue's rule).
+pub fn pack_photos(dir: &Path) -> Result<PreparedUpload> {
+    let members = folder_members(dir)?;
+    let found = find_photos(members.iter().map(|(relative, _)| relative.as_str()));
+    match found {
+        Some((_, n)) if n >= MIN_PHOTOS => pack(dir, &members, "photos"),
+        found => Err(ClientError::InvalidInput(format!(
+            "{} holds {} PNG/JPEG photos in one folder; camera poses need at least {MIN_PHOTOS}",
+            dir.display(),
+            found.map_or(0, |(_, n)| n)
+        ))),
+    }
+}
+
+/// Packs `members` of `dir` into a temporary tar archive named after the folder (`fallback`
+/// when it has no usable name).
+fn pack(dir: &Path, members: &[(String, PathBuf)], fallback: &str) -> Result<PreparedUpload> {
     let temp = tempfile::Builder::new()
         .prefix("stylenerf-scene-")
         .suffix(".tar")
@@ -140,7 +162,7 @@ pub fn pack_scene(dir: &Path) -> Result<PreparedUpload> {
     let mut builder = tar::Builder::new(writer);
     builder.mode(tar::HeaderMode::Deterministic);
     builder.follow_symlinks(true);
-    for (relative, path) in &members {
+    for (relative, path) in members {
         builder
             .append_path_with_name(path, relative)
             .map_err(|e| ClientError::io(path, e))?;
@@ -156,7 +178,7 @@ pub fn pack_scene(dir: &Path) -> Result<PreparedUpload> {
         .ok()
         .and_then(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
         .filter(|n| !n.starts_with('.') && !n.is_empty())
-        .unwrap_or_else(|| "scene".into());
+        .unwrap_or_else(|| fallback.into());
     Ok(PreparedUpload {
         path: temp_path.to_path_buf(),
         filename: format!("{name}.tar"),
@@ -194,6 +216,16 @@ pub fn prepare_file(path: &Path) -> Result<PreparedUpload> {
 pub fn prepare_dataset(path: &Path) -> Result<PreparedUpload> {
     if path.is_dir() {
         pack_scene(path)
+    } else {
+        prepare_file(path)
+    }
+}
+
+/// Plain photos: a folder is packed, a file (a tar archive of photos, or a video) is sent as
+/// it is.
+pub fn prepare_photos(path: &Path) -> Result<PreparedUpload> {
+    if path.is_dir() {
+        pack_photos(path)
     } else {
         prepare_file(path)
     }

@@ -521,3 +521,48 @@ async fn an_upload_resumes_where_a_broken_link_left_it() {
     spec.dataset = Some(Input::UploadId(receipt.upload_id));
     client.submit(&spec).await.expect("a job from the upload");
 }
+
+#[tokio::test]
+async fn a_folder_of_photos_or_a_video_is_submitted_as_a_job_that_starts_with_poses() {
+    let dir = tempfile::tempdir().unwrap();
+    let coordinator = start(&dir.path().join("coord")).await;
+    let client = Client::connect(&coordinator.endpoint(), Some(ALICE))
+        .await
+        .unwrap();
+    let photos = dir.path().join("holiday");
+    std::fs::create_dir_all(photos.join("raw")).unwrap();
+    for i in 0..4 {
+        write_png(&photos.join(format!("raw/IMG_{i}.png")), 20);
+    }
+    let mut spec = job_spec(dir.path());
+    let dataset = spec.dataset.take();
+    spec.photos = Some(Input::path(&photos));
+    let submitted = client.submit(&spec).await.unwrap();
+    assert_eq!(submitted.uploads[0].summary, "4 photos in raw/");
+    let job = submitted.job;
+    assert_eq!(job.tasks.len(), Source::Photos.stages().len());
+    assert_eq!(job.tasks[0].stage(), pb::Stage::Poses);
+
+    // A video goes as it is.
+    let video = dir.path().join("walk.mov");
+    std::fs::write(
+        &video,
+        [&[0, 0, 0, 0x14][..], b"ftypqt  ", &[0; 64]].concat(),
+    )
+    .unwrap();
+    let receipt = client.upload_photos(&video).await.unwrap();
+    assert_eq!(receipt.summary, "mov video");
+
+    // Too few photos fail before anything is sent; both inputs at once are refused.
+    let few = dir.path().join("few");
+    std::fs::create_dir_all(&few).unwrap();
+    write_png(&few.join("a.png"), 20);
+    let err = client.upload_photos(&few).await.unwrap_err().to_string();
+    assert!(
+        err.contains("1 PNG/JPEG photos") && err.contains("at least 3"),
+        "{err}"
+    );
+    spec.dataset = dataset;
+    let err = client.submit(&spec).await.unwrap_err().to_string();
+    assert!(err.contains("not both"), "{err}");
+}

@@ -126,7 +126,8 @@ async fn submit(args: SubmitArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     let json = args.connection.json();
     let spec = JobSpec {
         name: args.name.clone(),
-        dataset: Some(parse_input(&args.data)),
+        dataset: args.data.as_deref().map(parse_input),
+        photos: args.photos.as_deref().map(parse_input),
         styles: args.styles.iter().map(|s| parse_input(s)).collect(),
         preset: args.preset.clone(),
         overrides: parse_overrides(&args.overrides)?,

@@ -81,8 +81,17 @@ pub enum ClientCommand {
 pub struct SubmitArgs {
     /// Scene: a folder with transforms.json / transforms_train.json / poses_bounds.npy and its
     /// images, a .tar of one, `upload:<id>` or `object:<key>`.
-    #[arg(long, value_name = "DIR")]
-    pub data: String,
+    #[arg(
+        long,
+        value_name = "DIR",
+        required_unless_present = "photos",
+        conflicts_with = "photos"
+    )]
+    pub data: Option<String>,
+    /// Or a scene without camera poses: a folder of photos, a .tar of one, a video, or
+    /// `upload:<id>`; the job starts with the poses stage (COLMAP, on a worker that has it).
+    #[arg(long, value_name = "DIR|VIDEO")]
+    pub photos: Option<String>,
     /// Style image (repeat for several styles); also `upload:<id>` or `object:<key>`.
     #[arg(long = "style", value_name = "IMAGE", required = true)]
     pub styles: Vec<String>,
