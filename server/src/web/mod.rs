@@ -9,7 +9,7 @@
 //!   an error is `{"code": "not_found", "message": …, "violations": [{field, description}]}`
 //!   with the matching HTTP status). `ListEvents` (`{job_id, after_seq}`) returns a job's stored
 //!   events.
-//! - `POST /upload?kind=DATASET_ARCHIVE|STYLE_IMAGE&filename=F` with the file as the body (and
+//! - `POST /upload?kind=DATASET_ARCHIVE|PHOTOS|STYLE_IMAGE&filename=F` with the file as the body (and
 //!   optionally `x-content-sha256`, checked when given): the `UploadReceipt`.
 //!
 //! Every call needs `authorization: Bearer <token>` (no cookies: nothing a third-party page

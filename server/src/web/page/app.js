@@ -6,7 +6,6 @@
 
 const TOKEN_KEY = "stylenerf-token";
 const POLL_MS = 1500;
-const STAGES = ["nerf_pretrain", "render_views", "decoder_pretrain", "mutual_learning", "render_stylized"];
 let timer = null;
 
 function el(tag, attrs = {}, ...children) {
@@ -331,7 +330,11 @@ function newJob() {
   const field = (label, input) => [el("label", { for: input.id }, label), input];
   const jobName = el("input", { type: "text", id: "job-name", maxlength: 200 });
   const preset = el("select", { id: "preset" }, ["tiny", "quick", "standard", "paper"].map((p) => el("option", { value: p, selected: p === "quick" }, p)));
-  const scene = el("input", { type: "file", id: "scene", accept: ".tar,application/x-tar", required: true });
+  const sceneKind = el("select", { id: "scene-kind" }, [
+    el("option", { value: "DATASET_ARCHIVE", selected: true }, "a posed dataset: an uncompressed .tar of a nerfstudio, Blender or LLFF folder"),
+    el("option", { value: "PHOTOS" }, "plain photos (an uncompressed .tar of a folder of them) or a video: camera poses are recovered first"),
+  ]);
+  const scene = el("input", { type: "file", id: "scene", accept: ".tar,application/x-tar,video/*", required: true });
   const styles = el("input", { type: "file", id: "styles", accept: "image/png,image/jpeg,image/gif,image/webp", multiple: true, required: true });
   const overrides = el("textarea", { id: "overrides", rows: 2, placeholder: '{"nerf_pretrain.steps": 500}' });
   const status = el("p", { class: "muted", role: "status" });
@@ -342,7 +345,7 @@ function newJob() {
       submit.disabled = true;
       try {
         status.textContent = `uploading ${scene.files[0].name}…`;
-        const dataset = await upload("DATASET_ARCHIVE", scene.files[0]);
+        const dataset = await upload(sceneKind.value, scene.files[0]);
         const refs = [];
         for (const file of styles.files) {
           status.textContent = `uploading ${file.name}…`;
@@ -363,7 +366,7 @@ function newJob() {
       }
     },
   }, field("Name", jobName), field("Preset", preset),
-  field("Scene (an uncompressed .tar of a nerfstudio, Blender or LLFF folder)", scene),
+  field("Scene is", sceneKind), field("Scene file", scene),
   field("Paintings (one or more images)", styles),
   field("Overrides (optional JSON)", overrides), submit, status);
   show(el("section", {}, el("h1", {}, "New job"), form));
