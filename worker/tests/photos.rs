@@ -1,7 +1,8 @@
 //! A job from plain photos through the service: photos of a generated turntable (no camera
-//! poses) uploaded, the real worker (which finds COLMAP and advertises it) runs the `poses`
-//! stage and then every other stage on the dataset it wrote, and the job succeeds with the
-//! recovered poses stored. Needs `colmap` from the OS packages; without it the test says so
+//! poses) uploaded, the real worker (which finds COLMAP and advertises it) starts the `poses`
+//! stage and is stopped after its first checkpoint (COLMAP's work folder), a second worker
+//! resumes it at the next step and runs every other stage on the dataset it wrote, and the job
+//! succeeds with the recovered poses stored. Needs `colmap` from the OS packages; without it the test says so
 //! and passes, unless `STYLENERF_REQUIRE_TEST_TOOLS` is set, as `.ci/run` does.
 
 mod support;
@@ -75,7 +76,29 @@ async fn photos_become_a_finished_job_through_the_poses_stage() {
         .job
         .unwrap();
 
+    // The first worker stops once a checkpoint of COLMAP's state is stored.
+    let first = spawn_worker(worker_config(&coordinator, dir.path())).await;
+    let ckpt = format!("jobs/{}/poses/ckpt/", job.id);
+    eventually(
+        "a poses checkpoint stored",
+        Duration::from_secs(60),
+        || async {
+            let keys = list(&coordinator, &ckpt).await;
+            keys.iter().any(|k| k.ends_with(".json")).then_some(())
+        },
+    )
+    .await;
+    let summary = first.stop().await;
+    assert_eq!(summary.released, 1, "{summary:?}");
+
     let mut worker = spawn_worker(worker_config(&coordinator, dir.path())).await;
+    let resumed_from = worker
+        .wait_for(Duration::from_secs(30), |e| match e {
+            WorkerEvent::TaskStarted { resumed_from, .. } => Some(*resumed_from),
+            _ => None,
+        })
+        .await;
+    assert!(resumed_from >= 1, "resumed from step {resumed_from}");
     for expected in Source::Photos.stages().into_iter().map(pb::Stage::from) {
         let (stage, result) = worker
             .wait_for(Duration::from_secs(300), |event| match event {
@@ -88,6 +111,7 @@ async fn photos_become_a_finished_job_through_the_poses_stage() {
             panic!("{stage:?} did not complete: {result:?}");
         };
         if stage == pb::Stage::Poses {
+            assert_eq!(metrics["resumed_from"], resumed_from as f64);
             // How many COLMAP places varies from run to run on this small turntable (the
             // engine's test grades the poses); the stage fails below half.
             assert_eq!(metrics["images"], VIEWS as f64, "{metrics:?}");
