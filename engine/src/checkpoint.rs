@@ -167,17 +167,13 @@ impl CheckpointDir {
         })
     }
 
-    /// Writes a checkpoint for `step` of the files under `root` (each a `u8` tensor named by
-    /// its path relative to `root`) and prunes old ones.
+    /// Writes a checkpoint for `step` of the files under `root` ([`files_under`], each a `u8`
+    /// tensor named by its path relative to `root`) and prunes old ones.
     pub fn save_folder<M: Serialize>(&self, step: u64, root: &Path, meta: &M) -> Result<()> {
         let mut tensors = Vec::new();
-        for path in files_under(root)? {
+        for name in files_under(root)? {
+            let path = root.join(&name);
             let bytes = std::fs::read(&path).map_err(|e| EngineError::io(&path, e))?;
-            let name = path
-                .strip_prefix(root)
-                .expect("listed under root")
-                .to_string_lossy()
-                .replace('\\', "/");
             let len = bytes.len();
             tensors.push((name, Tensor::from_vec(bytes, len, &Device::Cpu)?));
         }
@@ -240,22 +236,38 @@ enum Stored<M> {
     Unchecked(M),
 }
 
-/// Every file under `root`, recursively, in name order.
-fn files_under(root: &Path) -> Result<Vec<PathBuf>> {
-    let mut files = Vec::new();
-    let mut dirs = vec![root.to_path_buf()];
-    while let Some(dir) = dirs.pop() {
-        for entry in std::fs::read_dir(&dir).map_err(|e| EngineError::io(&dir, e))? {
-            let path = entry.map_err(|e| EngineError::io(&dir, e))?.path();
-            if path.is_dir() {
-                dirs.push(path);
-            } else {
-                files.push(path);
+/// `/`-separated paths of the regular files under `dir` (recursively), sorted, leaving out
+/// hidden files and folders (temporary files of atomic writes start with `.`); none when `dir`
+/// does not exist. What a folder checkpoint holds, and what a worker uploads of an output folder.
+pub fn files_under(dir: &Path) -> Result<Vec<String>> {
+    fn walk(dir: &Path, rel: &str, out: &mut Vec<String>) -> Result<()> {
+        let entries = match std::fs::read_dir(dir) {
+            Ok(e) => e,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+            Err(e) => return Err(EngineError::io(dir, e)),
+        };
+        for entry in entries {
+            let entry = entry.map_err(|e| EngineError::io(dir, e))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if name.starts_with('.') {
+                continue;
+            }
+            let path = rel.to_string() + &name;
+            let kind = entry
+                .file_type()
+                .map_err(|e| EngineError::io(entry.path(), e))?;
+            if kind.is_dir() {
+                walk(&entry.path(), &format!("{path}/"), out)?;
+            } else if kind.is_file() {
+                out.push(path);
             }
         }
+        Ok(())
     }
-    files.sort();
-    Ok(files)
+    let mut out = Vec::new();
+    walk(dir, "", &mut out)?;
+    out.sort();
+    Ok(out)
 }
 
 fn sha256_file(path: &Path) -> Result<String> {
@@ -403,5 +415,20 @@ mod tests {
         assert_eq!(ck.steps().unwrap(), [3]);
         let empty = CheckpointDir::new(tmp.path().join("none"), 1);
         assert!(empty.restore_folder::<String>(&work).unwrap().is_none());
+    }
+
+    #[test]
+    fn lists_files_sorted_without_hidden_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let dir = dir.path();
+        std::fs::create_dir_all(dir.join("ckpt")).unwrap();
+        for f in ["b.json", "a.bin", "ckpt/step-1.json", ".tmp", "ckpt/.x.tmp"] {
+            std::fs::write(dir.join(f), b"x").unwrap();
+        }
+        assert_eq!(
+            files_under(dir).unwrap(),
+            ["a.bin", "b.json", "ckpt/step-1.json"]
+        );
+        assert!(files_under(&dir.join("none")).unwrap().is_empty());
     }
 }

@@ -4,7 +4,7 @@
 //! ([`find_photos`]) and every photo's header read; or one video file, recognised by its
 //! container's signature. What a worker would refuse is refused here, naming the member.
 
-use std::io::Read;
+use std::io::{Read, Seek};
 use std::path::Path;
 
 use stylenerf_plan::scene_format::{find_photos, MIN_PHOTOS, PHOTO_EXTENSIONS};
@@ -39,10 +39,12 @@ impl std::fmt::Display for PhotosSummary {
 /// Checks the upload of photos at `path`.
 pub fn validate_photos(path: &Path, limits: &Limits) -> Result<PhotosSummary, String> {
     let mut file = std::fs::File::open(path).map_err(|e| e.to_string())?;
-    let mut head = [0u8; 512];
-    let n = read_up_to(&mut file, &mut head)?;
-    let head = &head[..n];
-    if let Some(extension) = video_container(head) {
+    let mut head = Vec::with_capacity(512);
+    (&mut file)
+        .take(512)
+        .read_to_end(&mut head)
+        .map_err(|e| e.to_string())?;
+    if let Some(extension) = video_container(&head) {
         return Ok(PhotosSummary {
             source: Source::Video,
             extension,
@@ -57,7 +59,7 @@ pub fn validate_photos(path: &Path, limits: &Limits) -> Result<PhotosSummary, St
                 .into(),
         );
     }
-    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    file.rewind().map_err(|e| e.to_string())?;
     let walked = walk_archive(file, limits, |member, _size, entry| {
         let ext = member.rsplit_once('.').map(|(_, e)| e.to_ascii_lowercase());
         if !ext.is_some_and(|e| PHOTO_EXTENSIONS.contains(&e.as_str())) {
@@ -112,18 +114,6 @@ fn video_container(head: &[u8]) -> Option<&'static str> {
         }
         _ => None,
     }
-}
-
-/// Reads until `buf` is full or the file ends; returns how much was read.
-fn read_up_to(file: &mut impl Read, buf: &mut [u8]) -> Result<usize, String> {
-    let mut n = 0;
-    while n < buf.len() {
-        match file.read(&mut buf[n..]).map_err(|e| e.to_string())? {
-            0 => break,
-            k => n += k,
-        }
-    }
-    Ok(n)
 }
 
 #[cfg(test)]

@@ -165,6 +165,24 @@ pub async fn create_job(client: &mut JobServiceClient<Authed>) -> pb::Job {
     create(client, request).await
 }
 
+/// The job's events after `after_seq` (`skip_progress`: without progress events), then live.
+pub async fn watch(
+    client: &mut JobServiceClient<Authed>,
+    job_id: &str,
+    after_seq: u64,
+    skip_progress: bool,
+) -> tonic::Streaming<pb::Event> {
+    client
+        .watch_job(pb::WatchJobRequest {
+            job_id: job_id.into(),
+            after_seq,
+            skip_progress,
+        })
+        .await
+        .expect("watch job")
+        .into_inner()
+}
+
 pub async fn get_job(client: &mut JobServiceClient<Authed>, id: &str) -> pb::Job {
     client
         .get_job(pb::GetJobRequest { job_id: id.into() })

@@ -9,6 +9,7 @@ use std::sync::{Arc, Mutex};
 
 use futures::StreamExt;
 use sha2::{Digest, Sha256};
+use stylenerf_engine::checkpoint::files_under;
 use stylenerf_proto::v1 as pb;
 use stylenerf_proto::v1::artifact_service_client::ArtifactServiceClient;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -254,37 +255,6 @@ async fn hash_file(path: &Path) -> Result<(u64, String), TaskError> {
     Ok((size, hex::encode(hasher.finalize())))
 }
 
-/// `/`-separated paths of the regular files under `dir` (recursively), sorted, leaving out
-/// hidden files and folders (temporary files of atomic writes start with `.`).
-pub fn files_under(dir: &Path) -> Result<Vec<String>, TaskError> {
-    fn walk(dir: &Path, rel: &str, out: &mut Vec<String>) -> Result<(), TaskError> {
-        let entries = match std::fs::read_dir(dir) {
-            Ok(e) => e,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-            Err(e) => return Err(io_error(dir)(e)),
-        };
-        for entry in entries {
-            let entry = entry.map_err(io_error(dir))?;
-            let name = entry.file_name().to_string_lossy().into_owned();
-            if name.starts_with('.') {
-                continue;
-            }
-            let path = rel.to_string() + &name;
-            let kind = entry.file_type().map_err(io_error(&entry.path()))?;
-            if kind.is_dir() {
-                walk(&entry.path(), &format!("{path}/"), out)?;
-            } else if kind.is_file() {
-                out.push(path);
-            }
-        }
-        Ok(())
-    }
-    let mut out = Vec::new();
-    walk(dir, "", &mut out)?;
-    out.sort();
-    Ok(out)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -296,20 +266,5 @@ mod tests {
         assert_eq!(safe_relative("/etc/passwd"), None);
         assert_eq!(safe_relative("a\\b"), None);
         assert_eq!(safe_relative(""), None);
-    }
-
-    #[test]
-    fn lists_files_sorted_without_hidden_ones() {
-        let dir = std::env::temp_dir().join(format!("stylenerf-files-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(dir.join("ckpt")).unwrap();
-        for f in ["b.json", "a.bin", "ckpt/step-1.json", ".tmp", "ckpt/.x.tmp"] {
-            std::fs::write(dir.join(f), b"x").unwrap();
-        }
-        assert_eq!(
-            files_under(&dir).unwrap(),
-            ["a.bin", "b.json", "ckpt/step-1.json"]
-        );
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

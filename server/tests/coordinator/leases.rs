@@ -116,15 +116,7 @@ async fn cancellation_reaches_the_heartbeat() {
     let mut worker = FakeWorker::register(&server, "cpu", 0).await;
     let task = worker.lease(1000).await.unwrap();
     assert!(!worker.heartbeat(&task, 1).await.unwrap().cancel);
-    let watch = client
-        .watch_job(pb::WatchJobRequest {
-            job_id: job.id.clone(),
-            after_seq: 0,
-            skip_progress: true,
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let watch = watch(&mut client, &job.id, 0, true).await;
 
     let cancelled = client
         .cancel_job(pb::CancelJobRequest {

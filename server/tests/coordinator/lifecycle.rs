@@ -35,15 +35,7 @@ async fn job_runs_through_all_stages_and_renders_again() {
     assert_eq!(job.style_keys.len(), 2);
     assert_eq!(job.dataset_key, format!("jobs/{}/inputs/scene.tar", job.id));
 
-    let mut watch = client
-        .watch_job(pb::WatchJobRequest {
-            job_id: job.id.clone(),
-            after_seq: 0,
-            skip_progress: false,
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut live = watch(&mut client, &job.id, 0, false).await;
 
     let mut worker = FakeWorker::register(&server, "cpu", 0).await;
     let mut outputs = Vec::new();
@@ -85,7 +77,7 @@ async fn job_runs_through_all_stages_and_renders_again() {
     );
 
     // The watch stream saw the whole history and ended with the job's success.
-    let events: Vec<pb::Event> = watch.by_ref().map(|e| e.unwrap()).collect().await;
+    let events: Vec<pb::Event> = live.by_ref().map(|e| e.unwrap()).collect().await;
     assert_eq!(events[0].kind(), pb::EventKind::JobCreated);
     assert!(events.windows(2).all(|w| w[0].seq < w[1].seq));
     assert!(
@@ -100,15 +92,8 @@ async fn job_runs_through_all_stages_and_renders_again() {
 
     // Replay from the middle returns exactly the later events.
     let middle = events[events.len() / 2].seq;
-    let replayed: Vec<pb::Event> = client
-        .watch_job(pb::WatchJobRequest {
-            job_id: job.id.clone(),
-            after_seq: middle,
-            skip_progress: true,
-        })
+    let replayed: Vec<pb::Event> = watch(&mut client, &job.id, middle, true)
         .await
-        .unwrap()
-        .into_inner()
         .map(|e| e.unwrap())
         .collect()
         .await;
@@ -268,15 +253,7 @@ async fn tasks_go_only_to_capable_workers() {
     });
     let created = client.create_job(request).await.unwrap().into_inner();
     // Nobody can run it yet: the submitter is told so.
-    let mut events = client
-        .watch_job(pb::WatchJobRequest {
-            job_id: created.job.unwrap().id,
-            after_seq: 0,
-            skip_progress: true,
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut events = watch(&mut client, &created.job.unwrap().id, 0, true).await;
     let first = events.message().await.unwrap().unwrap();
     assert!(first.message.contains("no CUDA worker"), "{first:?}");
     let mut cpu = FakeWorker::register(&server, "cpu", 0).await;
@@ -416,15 +393,8 @@ async fn a_job_from_photos_starts_with_poses_on_a_worker_that_has_colmap() {
         format!("jobs/{}/inputs/photos.tar", job.id)
     );
     assert_eq!(job.tasks.len(), Source::Photos.stages().len());
-    let first = client
-        .watch_job(pb::WatchJobRequest {
-            job_id: job.id.clone(),
-            after_seq: 0,
-            skip_progress: true,
-        })
+    let first = watch(&mut client, &job.id, 0, true)
         .await
-        .unwrap()
-        .into_inner()
         .next()
         .await
         .unwrap()

@@ -46,15 +46,8 @@ async fn restart_mid_job_loses_nothing() {
         pb::JobState::Succeeded
     );
 
-    let events: Vec<pb::Event> = client
-        .watch_job(pb::WatchJobRequest {
-            job_id: job.id.clone(),
-            after_seq: 0,
-            skip_progress: true,
-        })
+    let events: Vec<pb::Event> = watch(&mut client, &job.id, 0, true)
         .await
-        .unwrap()
-        .into_inner()
         .map(|e| e.unwrap())
         .collect()
         .await;
