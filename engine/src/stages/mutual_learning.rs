@@ -7,7 +7,8 @@
 //!   the window's part of the feature map);
 //! - L_mimic = mean ‖C_nerf − C_2d‖² over the window.
 //!
-//! The style module and the latents minimise L_N = L_mimic + λ_d L_d (C_2d detached). After the
+//! The style module and the latents minimise L_N = L_mimic + λ_d L_d + λ_sN L_s(C_nerf window)
+//! (C_2d detached; the last term is ours, `nerf_style_weight`, see docs/STYLIZED.md). After the
 //! first `decoder_freeze` fraction of the steps, the decoder also learns, minimising
 //! L_C = λ_m L_mimic + λ_s L_s + L_c (C_nerf detached): the NeRF's multi-view-consistent colours
 //! pull the decoder towards consistency while the style and content losses keep it stylizing.
