@@ -3,7 +3,8 @@
 //! path).
 //!
 //! On disk: `cameras.json` (size and the cameras), `views.safetensors` (`rgb` [N, H, W, 3],
-//! `depth` [N, H, W] in world units along the camera axis, `opacity` [N, H, W]), and PNG
+//! `depth` [N, H, W] in world units along the camera axis, `opacity` [N, H, W], and
+//! `true_depth` [N, H, W] when the dataset has ground-truth depth), and PNG
 //! previews under `rgb/` and `depth/` for people. The safetensors file is written before the
 //! JSON, so a folder with `cameras.json` is complete.
 
@@ -54,6 +55,9 @@ pub struct RenderedViews {
     pub depth: Vec<f32>,
     /// Accumulated opacity per pixel: N·H·W.
     pub opacity: Vec<f32>,
+    /// The dataset's ground-truth z-depth per pixel, N·H·W (0 where unknown and on the path's
+    /// views), when the dataset has it.
+    pub true_depth: Option<Vec<f32>>,
 }
 
 impl RenderedViews {
@@ -84,6 +88,12 @@ impl RenderedViews {
         &self.opacity[i * n..(i + 1) * n]
     }
 
+    /// View `i`'s ground-truth depth, when the dataset has it.
+    pub fn true_depth(&self, i: usize) -> Option<&[f32]> {
+        let n = self.pixels();
+        self.true_depth.as_ref().map(|d| &d[i * n..(i + 1) * n])
+    }
+
     /// Indices of the views rendered at training poses.
     pub fn train_indices(&self) -> Vec<usize> {
         (0..self.len())
@@ -110,7 +120,7 @@ impl RenderedViews {
     pub fn save(&self, dir: &Path, near: f32, far: f32) -> Result<()> {
         let (n, h, w) = (self.len(), self.height as usize, self.width as usize);
         let dev = Device::Cpu;
-        let tensors = HashMap::from([
+        let mut tensors = HashMap::from([
             (
                 "rgb".to_string(),
                 Tensor::from_slice(&self.rgb, (n, h, w, 3), &dev)?,
@@ -124,6 +134,12 @@ impl RenderedViews {
                 Tensor::from_slice(&self.opacity, (n, h, w), &dev)?,
             ),
         ]);
+        if let Some(truth) = &self.true_depth {
+            tensors.insert(
+                "true_depth".to_string(),
+                Tensor::from_slice(truth, (n, h, w), &dev)?,
+            );
+        }
         std::fs::create_dir_all(dir.join("rgb")).map_err(|e| EngineError::io(dir, e))?;
         std::fs::create_dir_all(dir.join("depth")).map_err(|e| EngineError::io(dir, e))?;
         for (i, v) in self.views.iter().enumerate() {
@@ -185,6 +201,10 @@ impl RenderedViews {
             rgb: take("rgb", &[n, h, w, 3])?,
             depth: take("depth", &[n, h, w])?,
             opacity: take("opacity", &[n, h, w])?,
+            true_depth: match tensors.contains_key("true_depth") {
+                true => Some(take("true_depth", &[n, h, w])?),
+                false => None,
+            },
             views: cams.views,
         })
     }

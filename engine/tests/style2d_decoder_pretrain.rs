@@ -42,6 +42,7 @@ fn views(dir: &Path) -> RenderedViews {
         rgb: vec![],
         depth: vec![],
         opacity: vec![],
+        true_depth: None,
     };
     for (i, f) in scene.frames.iter().enumerate() {
         v.views.push(ViewInfo {

@@ -89,6 +89,7 @@ const RENDER_STYLIZED: &[Range] = &[
     ("frame_ms", 1.0, 60_000.0),
     ("style_size", 16.0, 4096.0),
     ("fidelity_stride", 1.0, 1e6),
+    ("truth_views", 0.0, 10_000.0),
 ];
 
 fn ranges(stage: Stage) -> &'static [Range] {

@@ -1,6 +1,8 @@
 //! The trained field as an artifact: `field.safetensors` (weights and occupancy) plus
 //! `field.json` (architecture, bounds, sampling, cameras, metrics). The JSON is written last,
-//! so a folder with `field.json` holds a complete field.
+//! so a folder with `field.json` holds a complete field. When the dataset has ground-truth
+//! depth for every training frame, `train_depth.safetensors` (`depth` [N, H, W], world units,
+//! 0 = unknown) carries it to the later stages, which measure consistency with true geometry.
 
 use std::path::Path;
 
@@ -51,6 +53,47 @@ pub fn save(dir: &Path, field: &RadianceField, meta: &FieldMeta) -> Result<()> {
     let json =
         serde_json::to_vec_pretty(meta).map_err(|e| EngineError::artifact(dir, e.to_string()))?;
     write_atomic(&dir.join("field.json"), &json)
+}
+
+/// The training frames' ground-truth depth: the file [`save_train_depth`] writes.
+pub const TRAIN_DEPTH: &str = "train_depth.safetensors";
+
+/// Writes the training frames' ground-truth depth (`depths[i]`: frame i's `width`×`height`
+/// map) into `dir`. Call before [`save`], whose JSON marks the folder complete.
+pub fn save_train_depth(dir: &Path, depths: &[&[f32]], width: u32, height: u32) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| EngineError::io(dir, e))?;
+    let flat: Vec<f32> = depths.iter().flat_map(|d| d.iter().copied()).collect();
+    let shape = (depths.len(), height as usize, width as usize);
+    let tensor = candle_core::Tensor::from_vec(flat, shape, &Device::Cpu)?;
+    let tmp = dir.join(".train_depth.safetensors.tmp");
+    candle_core::safetensors::save(&std::collections::HashMap::from([("depth", tensor)]), &tmp)?;
+    let path = dir.join(TRAIN_DEPTH);
+    std::fs::rename(&tmp, &path).map_err(|e| EngineError::io(&path, e))
+}
+
+/// Reads the training frames' ground-truth depth of the field in `dir` as N·H·W values, `None`
+/// when the dataset had none; `n`, `width` and `height` are the field's training cameras.
+pub fn load_train_depth(dir: &Path, n: usize, width: u32, height: u32) -> Result<Option<Vec<f32>>> {
+    let path = dir.join(TRAIN_DEPTH);
+    if !path.exists() {
+        return Ok(None);
+    }
+    let tensors = candle_core::safetensors::load(&path, &Device::Cpu)
+        .map_err(|e| EngineError::artifact(&path, format!("unreadable depth: {e}")))?;
+    let depth = tensors
+        .get("depth")
+        .ok_or_else(|| EngineError::artifact(&path, "tensor `depth` missing"))?;
+    let expected = [n, height as usize, width as usize];
+    if depth.dims() != expected {
+        return Err(EngineError::artifact(
+            &path,
+            format!(
+                "depth has shape {:?}, the field's training cameras imply {expected:?}",
+                depth.dims()
+            ),
+        ));
+    }
+    Ok(Some(depth.flatten_all()?.to_vec1()?))
 }
 
 /// Reads the metadata of a field written by [`save`] (cameras, space, sampling), without

@@ -231,6 +231,7 @@ pub(crate) fn crop_views(v: &RenderedViews) -> Result<RenderedViews> {
         rgb: vec![],
         depth: vec![],
         opacity: vec![],
+        true_depth: v.true_depth.as_ref().map(|_| vec![]),
     };
     for (i, info) in out.views.iter_mut().enumerate() {
         info.camera.intrinsics.width = w;
@@ -243,6 +244,9 @@ pub(crate) fn crop_views(v: &RenderedViews) -> Result<RenderedViews> {
                 .extend_from_slice(&v.depth(i)[row..row + w as usize]);
             out.opacity
                 .extend_from_slice(&v.opacity(i)[row..row + w as usize]);
+            if let (Some(to), Some(from)) = (&mut out.true_depth, v.true_depth(i)) {
+                to.extend_from_slice(&from[row..row + w as usize]);
+            }
         }
     }
     Ok(out)

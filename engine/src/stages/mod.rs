@@ -12,6 +12,7 @@ pub mod decoder_pretrain;
 pub mod dispatch;
 pub mod mutual_learning;
 pub mod nerf_pretrain;
+pub mod pose_consistency;
 pub mod render_stylized;
 pub mod render_views;
 pub mod training;

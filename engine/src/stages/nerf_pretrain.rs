@@ -410,6 +410,10 @@ pub fn run(
         loss_log,
         psnr_curve,
     };
+    if let Some(depths) = train_depths(scene) {
+        let (width, height) = scene.resolution();
+        saved::save_train_depth(out, &depths, width, height)?;
+    }
     saved::save(out, &field, &meta)?;
     let loss = report
         .loss_log
@@ -434,6 +438,24 @@ pub fn run(
         ..training.progress(cfg.steps)
     });
     Ok(Outcome::Done(report))
+}
+
+/// The training frames' ground-truth depth maps, when every one has a map at the scene's
+/// resolution (one stack of maps for the later stages' consistency with true geometry).
+fn train_depths(scene: &Scene) -> Option<Vec<&[f32]>> {
+    let (width, height) = scene.resolution();
+    scene
+        .train
+        .iter()
+        .map(|&i| {
+            let frame = &scene.frames[i];
+            let k = &frame.camera.intrinsics;
+            let depth = frame.depth.as_deref()?;
+            let fits =
+                (k.width, k.height) == (width, height) && depth.len() == (width * height) as usize;
+            fits.then_some(depth)
+        })
+        .collect()
 }
 
 fn field_meta(scene: &Scene, cfg: &NerfConfig, sigma_threshold: f32) -> FieldMeta {

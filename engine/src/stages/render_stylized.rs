@@ -25,10 +25,12 @@ use serde::{Deserialize, Serialize};
 use crate::camera::Camera;
 use crate::checkpoint::write_json_atomic;
 use crate::eval::{fidelity, GapError, PathWarps};
-use crate::field::saved;
+use crate::field::radiance::RadianceField;
+use crate::field::saved::{self, FieldMeta};
 use crate::image_io;
 use crate::stages::decoder_pretrain::crop_views;
 use crate::stages::mutual_learning::LatentsFile;
+use crate::stages::pose_consistency::{PoseFrames, PoseScores, GAPS};
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::style2d::adain::{adain, Stats};
 use crate::style2d::arch::VggArch;
@@ -70,6 +72,10 @@ pub struct RenderStylizedConfig {
     /// Style and content losses are measured on every this-many-th frame (VGG passes on every
     /// frame of every method would cost more than the rendering).
     pub fidelity_stride: usize,
+    /// Training views (the first, in dataset order) at which consistency is also measured
+    /// with the dataset's ground-truth depth, when it has some ([`crate::stages::pose_consistency`]); 0: off.
+    #[serde(default)]
+    pub truth_views: usize,
 }
 
 impl RenderStylizedConfig {
@@ -85,12 +91,14 @@ impl RenderStylizedConfig {
             frame_ms: 80,
             style_size: 256,
             fidelity_stride: 3,
+            truth_views: 12,
         };
         match preset {
             Preset::Tiny => Self {
                 long_gap: 3,
                 sheet_rows: 2,
                 style_size: 32,
+                truth_views: 4,
                 ..base
             },
             _ => base,
@@ -146,6 +154,10 @@ pub struct SpecReport {
     pub methods: Vec<MethodScores>,
     /// The unstylized frames' [`OutsideScores`]: the "did nothing" floor (with evaluation).
     pub unstylized: Option<OutsideScores>,
+    /// Consistency at the training poses with ground-truth depth ([`crate::stages::pose_consistency`]), per
+    /// method; empty when the dataset has no depth or without evaluation.
+    #[serde(default)]
+    pub at_poses: Vec<PoseScores>,
     /// The animations written: `animation.gif`, and `animation.mp4` when ffmpeg made one.
     #[serde(default)]
     pub animations: Vec<String>,
@@ -168,6 +180,12 @@ pub struct RenderStylizedReport {
     pub specs: Vec<SpecReport>,
     /// Present with evaluation.
     pub photoreal: Option<PhotorealScores>,
+    /// Training views measured at their poses with ground-truth depth (0: none).
+    #[serde(default)]
+    pub pose_views: usize,
+    /// The unstylized renders' consistency at those poses: the floor there.
+    #[serde(default)]
+    pub photoreal_at_poses: Option<PoseScores>,
     pub seconds: f64,
 }
 
@@ -280,15 +298,15 @@ struct PathFrames {
 }
 
 fn path_frames(
-    inputs: &Inputs,
+    (field, meta): (&RadianceField, &FieldMeta),
+    views: &RenderedViews,
+    path: Option<&[Camera]>,
     cfg: &RenderStylizedConfig,
     control: &StageControl,
     device: &Device,
 ) -> Result<PathFrames> {
-    let (field, meta) = saved::load(inputs.field_dir, device)?;
-    let views = crop_views(inputs.views)?;
     let (width, height) = (views.width as usize, views.height as usize);
-    let (cameras, given): (Vec<Camera>, bool) = match inputs.path {
+    let (cameras, given): (Vec<Camera>, bool) = match path {
         Some(p) => (p.to_vec(), true),
         None => (
             views
@@ -334,10 +352,10 @@ fn path_frames(
                 ));
             }
         }
-        let surface = SurfaceSamples::for_camera(&field, &meta, &cam)?;
+        let surface = SurfaceSamples::for_camera(field, meta, &cam)?;
         let (rgb, depth) = if given {
             let img = crate::render::render_image(
-                &field,
+                field,
                 &meta.camera_rays(&cam),
                 &meta.sampling,
                 &|s| field.colour(s),
@@ -436,14 +454,50 @@ pub fn run(
             Ok(StyleReference::new(w as usize, h as usize, &rgb))
         })
         .collect::<Result<Vec<_>>>()?;
-    let path = path_frames(&inputs, cfg, control, device)?;
-    let features = path
-        .photoreal
-        .iter()
-        .map(|f| Ok(encoder.relu4_1(&f.unsqueeze(0)?)?))
-        .collect::<Result<Vec<_>>>()?;
+    let (field, meta) = saved::load(inputs.field_dir, device)?;
+    let views = crop_views(inputs.views)?;
+    let path = path_frames((&field, &meta), &views, inputs.path, cfg, control, device)?;
+    let relu4_1 = |frames: &[Tensor]| -> Result<Vec<Tensor>> {
+        frames
+            .iter()
+            .map(|f| Ok(encoder.relu4_1(&f.unsqueeze(0)?)?))
+            .collect()
+    };
+    let features = relu4_1(&path.photoreal)?;
     let warp_cfg = WarpConfig {
         rel_tolerance: cfg.rel_tolerance,
+    };
+    // The training views with ground-truth depth, their surfaces and features.
+    let poses = match cfg.eval {
+        true => PoseFrames::prepare(
+            &views,
+            cfg.truth_views,
+            cfg.min_opacity,
+            cfg.rel_tolerance,
+            device,
+        )?,
+        false => None,
+    };
+    let pose_surfaces = match &poses {
+        Some(p) => p
+            .cameras
+            .iter()
+            .map(|c| SurfaceSamples::for_camera(&field, &meta, c))
+            .collect::<Result<Vec<_>>>()?,
+        None => Vec::new(),
+    };
+    let pose_features = match &poses {
+        Some(p) => relu4_1(&p.photoreal)?,
+        None => Vec::new(),
+    };
+    let stylize = |surface: &SurfaceSamples, latent: &Tensor| -> Result<Tensor> {
+        // Detached: a frame kept with its graph would hold every activation of the
+        // style module (about 100 MB per frame at 128²).
+        let rgb = module.render(&surface.all(device)?, latent)?.detach();
+        Ok(rgb
+            .t()?
+            .reshape((3, path.height, path.width))?
+            .clamp(0f32, 1f32)?)
     };
     // The path's warps at both gaps, shared by every method and style.
     let warps = if cfg.eval {
@@ -464,13 +518,7 @@ pub fn run(
             if control.is_cancelled() {
                 return Err(EngineError::Cancelled);
             }
-            // Detached: a frame kept with its graph would hold every activation of the
-            // style module (about 100 MB per frame at 128²).
-            let rgb = module.render(&surface.all(device)?, &latent)?.detach();
-            let frame = rgb
-                .t()?
-                .reshape((3, path.height, path.width))?
-                .clamp(0f32, 1f32)?;
+            let frame = stylize(surface, &latent)?;
             save_frame(
                 &dir.join("frames").join(format!("frame_{k:04}.png")),
                 &frame,
@@ -484,7 +532,7 @@ pub fn run(
             });
         }
         let (animations, animation_note) = write_animation(&dir, &stylized, cfg.frame_ms)?;
-        let decode = |decoder: &Decoder| -> Result<Vec<Tensor>> {
+        let decode = |decoder: &Decoder, features: &[Tensor]| -> Result<Vec<Tensor>> {
             features
                 .iter()
                 .map(|f| {
@@ -496,7 +544,7 @@ pub fn run(
                 })
                 .collect()
         };
-        let adain_frames = decode(&baseline)?;
+        let adain_frames = decode(&baseline, &features)?;
         let main_style = blend
             .weights
             .iter()
@@ -520,7 +568,7 @@ pub fn run(
             };
             let reference = &references[main_style];
             unstylized = Some(OutsideScores::of(reference, &every(&path.photoreal))?);
-            let finetuned_frames = decode(&finetuned)?;
+            let finetuned_frames = decode(&finetuned, &features)?;
             for (method, frames) in [
                 ("NeRF -> AdaIN", &adain_frames),
                 ("NeRF -> fine-tuned decoder", &finetuned_frames),
@@ -538,12 +586,30 @@ pub fn run(
                 });
             }
         }
+        let mut at_poses = Vec::new();
+        if let Some(poses) = &poses {
+            let stylized = pose_surfaces
+                .iter()
+                .map(|surface| stylize(surface, &latent))
+                .collect::<Result<Vec<_>>>()?;
+            for (method, frames) in [
+                ("NeRF -> AdaIN", decode(&baseline, &pose_features)?),
+                (
+                    "NeRF -> fine-tuned decoder",
+                    decode(&finetuned, &pose_features)?,
+                ),
+                ("stylized NeRF", stylized),
+            ] {
+                at_poses.push(poses.score(method, &frames)?);
+            }
+        }
         reports.push(SpecReport {
             spec: blend.spec.clone(),
             folder,
             frames: stylized.len(),
             methods,
             unstylized,
+            at_poses,
             animations,
             animation_note,
         });
@@ -555,9 +621,15 @@ pub fn run(
         }),
         None => None,
     };
+    let photoreal_at_poses = match &poses {
+        Some(p) => Some(p.score("NeRF, unstylized (reference)", &p.photoreal)?),
+        None => None,
+    };
     let report = RenderStylizedReport {
         specs: reports,
         photoreal,
+        pose_views: poses.as_ref().map_or(0, |p| p.views.len()),
+        photoreal_at_poses,
         seconds: started.elapsed().as_secs_f64(),
     };
     if cfg.eval {
@@ -611,6 +683,35 @@ pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig)
     s += "\nColour SWD and texture distance are measured outside the encoder, against the spec's \
           main style image (lower: closer to the painting); the unstylized row is the floor a \
           method that transfers no style would score.\n";
+    if let Some(floor) = &report.photoreal_at_poses {
+        s += &format!(
+            "\nAt the first {views} training views, in dataset order, with the dataset's \
+             ground-truth depth beside the field's (same pairs, same frames; training-view gaps \
+             {short} and {long}):\n\n\
+             | style | method | RMSE gap {short} (true depth) | RMSE gap {short} (field depth) \
+             | RMSE gap {long} (true depth) | RMSE gap {long} (field depth) |\n\
+             |---|---|---|---|---|---|\n",
+            views = report.pose_views,
+            short = GAPS[0],
+            long = GAPS[1],
+        );
+        let row = |style: &str, p: &PoseScores| {
+            format!(
+                "| {style} | {} | {:.4} | {:.4} | {:.4} | {:.4} |\n",
+                p.method,
+                p.true_depth[0].rmse,
+                p.field_depth[0].rmse,
+                p.true_depth[1].rmse,
+                p.field_depth[1].rmse
+            )
+        };
+        for spec in &report.specs {
+            for p in &spec.at_poses {
+                s += &row(&spec.spec, p);
+            }
+        }
+        s += &row("(none)", floor);
+    }
     for spec in &report.specs {
         s += &format!("\n{}: {}", spec.spec, spec.animations.join(", "));
         if let Some(note) = &spec.animation_note {

@@ -1,7 +1,8 @@
 //! Stage 2, `render_views`: render RGB, expected z-depth and opacity from the trained field at
 //! every training pose and along an interpolated camera path (slerp of rotations, lerp of
 //! centres, through evenly spaced training poses). These views are the training data of the 2D
-//! network and of mutual learning; their depth gives the geometry used for warping.
+//! network and of mutual learning; their depth gives the geometry used for warping. The
+//! dataset's ground-truth depth, when the field carries it, is laid over the training views.
 
 use std::path::Path;
 
@@ -92,7 +93,9 @@ pub fn run(
         rgb: Vec::new(),
         depth: Vec::new(),
         opacity: Vec::new(),
+        true_depth: None,
     };
+    let truth = saved::load_train_depth(field_dir, meta.train_cameras.len(), width, height)?;
     let total = views.len() as u64;
     for (i, view) in views.into_iter().enumerate() {
         if control.is_cancelled() {
@@ -124,6 +127,7 @@ pub fn run(
             ..Default::default()
         });
     }
+    rendered.true_depth = truth.map(|truth| carry_true_depth(&rendered, &truth));
     let (near, far) = depth_range(&rendered);
     rendered.save(out, near, far)?;
     // Written last: its presence marks the stage complete.
@@ -135,6 +139,20 @@ pub fn run(
         }),
     )?;
     Ok(Outcome::Done(rendered))
+}
+
+/// The training frames' ground-truth depth (`truth`: one map per training camera) laid out
+/// over `views`: each training view gets its frame's map, the path's views zeros (unknown).
+fn carry_true_depth(views: &RenderedViews, truth: &[f32]) -> Vec<f32> {
+    let n = (views.width * views.height) as usize;
+    views
+        .views
+        .iter()
+        .flat_map(|v| match v.kind {
+            ViewKind::Train { frame } => truth[frame * n..(frame + 1) * n].to_vec(),
+            ViewKind::Path => vec![0.0; n],
+        })
+        .collect()
 }
 
 /// The 2nd and 98th percentiles of the valid depths, for previews.
