@@ -120,8 +120,10 @@ impl MutualConfig {
                 steps: 3000,
                 ..base
             },
+            // The paper's schedule: 50k iterations, the decoder fixed for the first 20k
+            // (`decoder_freeze` 0.4). docs/STYLIZED.md lists what differs from the paper.
             Preset::Paper => Self {
-                steps: 20_000,
+                steps: 50_000,
                 style_module: StyleModuleConfig {
                     hidden: 128,
                     hidden_layers: 4,
