@@ -79,6 +79,11 @@ const MUTUAL_LEARNING: &[Range] = &[
     ("decoder_lr", 0.0, 10.0),
     ("decoder_freeze", 0.0, 1.0),
     ("style_size", 16.0, 4096.0),
+    ("style_module.hidden", 1.0, 1024.0),
+    ("style_module.hidden_layers", 1.0, 16.0),
+    // 2^k π in f32 (and the encoding's resolution) ends long before 2^24.
+    ("style_module.frequencies", 0.0, 16.0),
+    ("style_module.background_frequencies", 0.0, 16.0),
 ];
 
 const RENDER_STYLIZED: &[Range] = &[
@@ -212,6 +217,12 @@ mod tests {
             json!({"field": {"grid": {"levels": levels, "log2_table_size": log2,
                                       "features_per_level": 2}}})
         };
+        // An octave count whose 2^k would overflow is refused, not left to the worker.
+        let octaves = json!({"style_module": {"frequencies": 40}});
+        assert_eq!(
+            problem(Stage::MutualLearning, octaves).as_deref(),
+            Some("mutual_learning.style_module.frequencies")
+        );
         assert_eq!(problem(Stage::NerfPretrain, grid(19, 16)), None);
         assert_eq!(
             problem(Stage::NerfPretrain, grid(24, 32)).as_deref(),

@@ -112,6 +112,7 @@ impl MutualConfig {
                     hidden_layers: 2,
                     frequencies: 2,
                     use_geometry: true,
+                    background_frequencies: 2,
                 },
                 ..base
             },

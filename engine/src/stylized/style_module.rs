@@ -9,8 +9,11 @@
 //! description of each surface (edges, materials), which it would otherwise have to relearn
 //! from a positional encoding in a few hundred steps.
 //!
-//! The background (rays that hit nothing) gets its own colour from the latent through a small
-//! head, so a style (or a blend of styles) also restyles the backdrop.
+//! The background (the share of each ray that hits nothing) gets its own head: the latent and
+//! a sinusoidal encoding of the ray's world direction, so a style (or a blend of styles)
+//! paints the backdrop as a dome around the scene — textured, and the same from every view,
+//! as a background at infinity is. With `background_frequencies` 0 (modules written before
+//! it existed) the head sees the latent only and paints one colour.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -36,6 +39,9 @@ pub struct StyleModuleConfig {
     pub frequencies: usize,
     /// Feed the field's geometry features (see the module docs).
     pub use_geometry: bool,
+    /// Octaves of the direction encoding in the background head (0: one colour per latent).
+    #[serde(default)]
+    pub background_frequencies: usize,
 }
 
 impl Default for StyleModuleConfig {
@@ -45,6 +51,7 @@ impl Default for StyleModuleConfig {
             hidden_layers: 3,
             frequencies: 6,
             use_geometry: true,
+            background_frequencies: 4,
         }
     }
 }
@@ -74,6 +81,10 @@ impl StyleModule {
         let mut widths = vec![input];
         widths.extend(std::iter::repeat_n(config.hidden, config.hidden_layers));
         widths.push(3);
+        let background_widths = match config.background_frequencies {
+            0 => vec![latent_dim, 32, 3],
+            f => vec![latent_dim + 3 * (1 + 2 * f), 64, 64, 3],
+        };
         Ok(Self {
             config,
             geometry_dim,
@@ -81,7 +92,7 @@ impl StyleModule {
             colour_net: Mlp::new("style.colour", &widths, &mut rng, dtype, device)?,
             background_net: Mlp::new(
                 "style.background",
-                &[latent_dim, 32, 3],
+                &background_widths,
                 &mut rng,
                 dtype,
                 device,
@@ -95,9 +106,9 @@ impl StyleModule {
         v
     }
 
-    /// Positional encoding `[N, 3 (1 + 2F)]` of points in [0, 1]³: x, sin(2^k π x), cos(2^k π x).
-    fn encode(&self, points01: &Tensor) -> Result<Tensor> {
-        let f = self.config.frequencies;
+    /// Sinusoidal encoding `[N, 3 (1 + 2F)]` of points in [0, 1]³ with `f` octaves: x,
+    /// sin(2^k π x), cos(2^k π x).
+    fn encode(points01: &Tensor, f: usize) -> Result<Tensor> {
         let n = points01.dim(0)?;
         let scales: Vec<f32> = (0..f)
             .map(|k| std::f32::consts::PI * (1u32 << k) as f32)
@@ -122,16 +133,34 @@ impl StyleModule {
         if self.config.use_geometry {
             parts.push(batch.geometry.to_dtype(latent.dtype())?);
         }
-        parts.push(self.encode(&batch.points01.to_dtype(latent.dtype())?)?);
+        parts.push(Self::encode(
+            &batch.points01.to_dtype(latent.dtype())?,
+            self.config.frequencies,
+        )?);
         parts.push(latent.broadcast_as((n, self.latent_dim))?.contiguous()?);
         let x = Tensor::cat(&parts, 1)?;
         Ok(candle_nn::ops::sigmoid(&self.colour_net.forward(&x)?)?)
     }
 
-    /// Background colour `[1, 3]` under latent `[1, Z]`.
-    pub fn background(&self, latent: &Tensor) -> Result<Tensor> {
+    /// Background colour under latent `[1, Z]` of rays with unit `directions` `[R, 3]`:
+    /// `[R, 3]`, or `[1, 3]` for every ray when the head takes no direction.
+    pub fn background(&self, latent: &Tensor, directions: &Tensor) -> Result<Tensor> {
+        let input = match self.config.background_frequencies {
+            0 => latent.clone(),
+            f => {
+                let unit = ((directions.to_dtype(latent.dtype())? + 1.0)? * 0.5)?;
+                let r = unit.dim(0)?;
+                Tensor::cat(
+                    &[
+                        latent.broadcast_as((r, self.latent_dim))?.contiguous()?,
+                        Self::encode(&unit, f)?,
+                    ],
+                    1,
+                )?
+            }
+        };
         Ok(candle_nn::ops::sigmoid(
-            &self.background_net.forward(latent)?,
+            &self.background_net.forward(&input)?,
         )?)
     }
 
@@ -140,7 +169,7 @@ impl StyleModule {
         if batch.points01.dim(0)? == 0 {
             // No ray hits anything (candle cannot slice empty tensors): all background.
             return Ok(self
-                .background(latent)?
+                .background(latent, &batch.directions)?
                 .broadcast_as((batch.num_rays, 3))?
                 .contiguous()?);
         }
@@ -152,7 +181,7 @@ impl StyleModule {
             transparency: t,
             ..batch.clone()
         };
-        batch.composite(&colours, &self.background(latent)?)
+        batch.composite(&colours, &self.background(latent, &batch.directions)?)
     }
 
     /// Writes the weights and shape to `path` (safetensors with metadata).
@@ -227,6 +256,11 @@ mod tests {
             weights: Tensor::new(&[[0.5f64], [0.3], [0.2], [0.6], [0.1]], device).unwrap(),
             ray: Tensor::new(&[0u32, 0, 2, 2, 2], device).unwrap(),
             transparency: Tensor::new(&[[0.2f64], [1.0], [0.1]], device).unwrap(),
+            directions: Tensor::new(
+                &[[0.6f64, 0.0, 0.8], [0.0, 1.0, 0.0], [-0.8, 0.0, 0.6]],
+                device,
+            )
+            .unwrap(),
         }
     }
 
@@ -238,6 +272,7 @@ mod tests {
             hidden_layers: 2,
             frequencies: 2,
             use_geometry: true,
+            background_frequencies: 2,
         };
         let module = StyleModule::new(cfg, 4, 3, 5, DType::F64, &dev).unwrap();
         let b = batch(&dev);
@@ -253,7 +288,7 @@ mod tests {
         let p0 = params.as_tensor().copy().unwrap();
         let widths = [4 + 3 * 5 + 3, 8, 8, 3];
         let x = {
-            let enc = module.encode(&b.points01).unwrap();
+            let enc = StyleModule::encode(&b.points01, 2).unwrap();
             Tensor::cat(
                 &[
                     b.geometry.clone(),
@@ -264,7 +299,7 @@ mod tests {
             )
             .unwrap()
         };
-        let bg = module.background(&latent).unwrap().detach();
+        let bg = module.background(&latent, &b.directions).unwrap().detach();
         gradcheck::check(&p0, |p| {
             let c = candle_nn::ops::sigmoid(
                 &crate::field::mlp::forward_composed(&widths, &x, p)
@@ -301,20 +336,40 @@ mod tests {
             points01: b64.points01.to_dtype(DType::F32).unwrap(),
             weights: b64.weights.to_dtype(DType::F32).unwrap(),
             transparency: b64.transparency.to_dtype(DType::F32).unwrap(),
+            directions: b64.directions.to_dtype(DType::F32).unwrap(),
             ..b64
         };
         let l = Tensor::new(&[[0.3f32, -1.0, 2.0]], &dev).unwrap();
         let empty = SurfaceSamples {
             offsets: vec![0, 0, 0],
+            directions: vec![1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
             geometry_dim: 4,
             ..Default::default()
         };
         let none = module.render(&empty.all(&dev).unwrap(), &l).unwrap();
         assert_eq!(none.dims(), &[2, 3]);
+        // A background at infinity: its colour depends on the direction only.
+        let bg_empty = module
+            .background(&l, &empty.all(&dev).unwrap().directions)
+            .unwrap();
+        assert!(
+            none.eq(&bg_empty)
+                .unwrap()
+                .min_all()
+                .unwrap()
+                .to_scalar::<u8>()
+                .unwrap()
+                == 1
+        );
+        let (first, second) = (none.get(0).unwrap(), none.get(1).unwrap());
+        assert_ne!(
+            first.to_vec1::<f32>().unwrap(),
+            second.to_vec1::<f32>().unwrap()
+        );
         let out = module.render(&b, &l).unwrap();
-        let bg = module.background(&l).unwrap();
+        let bg = module.background(&l, &b.directions).unwrap();
         let row1 = out.get(1).unwrap().unsqueeze(0).unwrap();
-        let err = (row1 - &bg)
+        let err = (row1 - bg.get(1).unwrap().unsqueeze(0).unwrap())
             .unwrap()
             .abs()
             .unwrap()

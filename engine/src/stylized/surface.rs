@@ -6,7 +6,8 @@
 //! a ray is Σ_k w_k c_s(x_k, l) + (1 − Σ_k w_k) · background, linear in the style module's
 //! colours. Caching the few samples per ray that carry weight (typically 2–8 on a surface, out
 //! of the dozens a ray marches through) makes a mutual-learning step cost one small MLP pass
-//! instead of a field evaluation along whole rays.
+//! instead of a field evaluation along whole rays. Each ray also keeps its direction, which
+//! the style module's background reads.
 
 use candle_core::{Device, Tensor};
 
@@ -40,6 +41,8 @@ pub struct SurfaceSamples {
     pub points01: Vec<f32>,
     /// z-depth (world units) per sample.
     pub depths: Vec<f32>,
+    /// Unit world direction of each ray, 3 per ray (the background's input).
+    pub directions: Vec<f32>,
     pub geometry_dim: usize,
 }
 
@@ -57,6 +60,8 @@ pub struct SurfaceBatch {
     pub ray: Tensor,
     /// `[R, 1]`: 1 − Σ weights, the background's share of each ray.
     pub transparency: Tensor,
+    /// `[R, 3]`: each ray's unit world direction.
+    pub directions: Tensor,
 }
 
 /// Keeps the `cap` samples of largest weight (in ray order), scaled so they carry the weight
@@ -95,6 +100,7 @@ impl SurfaceSamples {
             geometry_dim: g,
             ..Default::default()
         };
+        out.directions = rays.view_dirs.iter().flat_map(|d| d.to_array()).collect();
         let idx: Vec<usize> = (0..rays.len()).collect();
         for part in idx.chunks(CHUNK) {
             let batch = rays.select(part);
@@ -156,7 +162,9 @@ impl SurfaceSamples {
         let (mut geometry, mut points01, mut weights, mut ray) =
             (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let mut transparency = Vec::with_capacity(rays.len());
+        let mut directions = Vec::with_capacity(3 * rays.len());
         for (row, &r) in rays.iter().enumerate() {
+            directions.extend_from_slice(&self.directions[3 * r..3 * r + 3]);
             let (a, b) = (self.offsets[r] as usize, self.offsets[r + 1] as usize);
             geometry.extend_from_slice(&self.geometry[a * g..b * g]);
             points01.extend_from_slice(&self.points01[3 * a..3 * b]);
@@ -172,6 +180,7 @@ impl SurfaceSamples {
             weights: Tensor::from_vec(weights, (n, 1), device)?,
             ray: Tensor::from_vec(ray, n, device)?,
             transparency: Tensor::from_vec(transparency, (rays.len(), 1), device)?,
+            directions: Tensor::from_vec(directions, (rays.len(), 3), device)?,
         })
     }
 
