@@ -236,6 +236,30 @@ enum Stored<M> {
     Unchecked(M),
 }
 
+/// Tensor `name` of the safetensors file at `path` (already loaded as `tensors`) as f32
+/// values, refused with the file and tensor named unless it has `shape`, which `source` sets.
+pub fn f32_tensor(
+    tensors: &HashMap<String, Tensor>,
+    path: &Path,
+    name: &str,
+    shape: &[usize],
+    source: &str,
+) -> Result<Vec<f32>> {
+    let t = tensors
+        .get(name)
+        .ok_or_else(|| EngineError::artifact(path, format!("tensor `{name}` missing")))?;
+    if t.dims() != shape {
+        return Err(EngineError::artifact(
+            path,
+            format!(
+                "tensor `{name}` has shape {:?}, {source} implies {shape:?}",
+                t.dims()
+            ),
+        ));
+    }
+    Ok(t.flatten_all()?.to_vec1()?)
+}
+
 /// `/`-separated paths of the regular files under `dir` (recursively), sorted, leaving out
 /// hidden files and folders (temporary files of atomic writes start with `.`); none when `dir`
 /// does not exist. What a folder checkpoint holds, and what a worker uploads of an output folder.

@@ -180,20 +180,8 @@ impl RenderedViews {
         let tensors = candle_core::safetensors::load(&path, &Device::Cpu)
             .map_err(|e| EngineError::artifact(&path, format!("unreadable views: {e}")))?;
         let (n, h, w) = (cams.views.len(), cams.height as usize, cams.width as usize);
-        let take = |name: &str, shape: &[usize]| -> Result<Vec<f32>> {
-            let t = tensors
-                .get(name)
-                .ok_or_else(|| EngineError::artifact(&path, format!("tensor `{name}` missing")))?;
-            if t.dims() != shape {
-                return Err(EngineError::artifact(
-                    &path,
-                    format!(
-                        "tensor `{name}` has shape {:?}, cameras.json implies {shape:?}",
-                        t.dims()
-                    ),
-                ));
-            }
-            Ok(t.flatten_all()?.to_vec1()?)
+        let take = |name: &str, shape: &[usize]| {
+            crate::checkpoint::f32_tensor(&tensors, &path, name, shape, "cameras.json")
         };
         Ok(Self {
             width: cams.width,

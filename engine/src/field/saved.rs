@@ -80,20 +80,9 @@ pub fn load_train_depth(dir: &Path, n: usize, width: u32, height: u32) -> Result
     }
     let tensors = candle_core::safetensors::load(&path, &Device::Cpu)
         .map_err(|e| EngineError::artifact(&path, format!("unreadable depth: {e}")))?;
-    let depth = tensors
-        .get("depth")
-        .ok_or_else(|| EngineError::artifact(&path, "tensor `depth` missing"))?;
     let expected = [n, height as usize, width as usize];
-    if depth.dims() != expected {
-        return Err(EngineError::artifact(
-            &path,
-            format!(
-                "depth has shape {:?}, the field's training cameras imply {expected:?}",
-                depth.dims()
-            ),
-        ));
-    }
-    Ok(Some(depth.flatten_all()?.to_vec1()?))
+    let depth = crate::checkpoint::f32_tensor(&tensors, &path, "depth", &expected, "field.json")?;
+    Ok(Some(depth))
 }
 
 /// Reads the metadata of a field written by [`save`] (cameras, space, sampling), without
