@@ -150,7 +150,61 @@ pub struct Samples {
     pub packed: PackedRays,
 }
 
+/// Samples per ray in the first round of [`Samples::front_to_back`]; each later round doubles.
+const FIRST_ROUND: usize = 16;
+
 impl Samples {
+    /// Positions of the samples at `idx`, 3 per sample.
+    pub fn positions_of(&self, idx: &[usize]) -> Vec<f32> {
+        idx.iter()
+            .flat_map(|&k| self.positions[3 * k..3 * k + 3].iter().copied())
+            .collect()
+    }
+
+    /// Which samples each ray still sees — those with a transmittance of at least `eps` in
+    /// front of them — and σ, evaluated front to back: each round asks `sigma_at` for the next
+    /// samples (16, then 32, 64, …) of every ray that is not yet opaque, so the samples behind
+    /// the point where a ray turns opaque are never evaluated (their σ is left at 0). In a
+    /// field that is opaque everywhere (an indoor capture) the occupancy grid skips nothing
+    /// behind the first wall, and this is most of the marched samples.
+    pub fn front_to_back(
+        &self,
+        eps: f32,
+        mut sigma_at: impl FnMut(&[usize]) -> crate::Result<Vec<f32>>,
+    ) -> crate::Result<(Vec<bool>, Vec<f32>)> {
+        let n = self.ray.len();
+        let (mut keep, mut sigma) = (vec![false; n], vec![0.0f32; n]);
+        // (next sample, end, transmittance in front of it) of every ray still open.
+        let mut open: Vec<(usize, usize, f32)> = self
+            .packed
+            .offsets
+            .windows(2)
+            .map(|w| (w[0] as usize, w[1] as usize, 1.0))
+            .filter(|&(k, end, _)| k < end)
+            .collect();
+        let mut round = FIRST_ROUND;
+        while !open.is_empty() {
+            let idx: Vec<usize> = open
+                .iter()
+                .flat_map(|&(k, end, _)| k..end.min(k + round))
+                .collect();
+            for (&k, s) in idx.iter().zip(sigma_at(&idx)?) {
+                sigma[k] = s;
+            }
+            open.retain_mut(|(k, end, trans)| {
+                let stop = (*end).min(*k + round);
+                while *k < stop && *trans >= eps {
+                    keep[*k] = true;
+                    *trans *= (-sigma[*k] * self.packed.deltas[*k]).exp();
+                    *k += 1;
+                }
+                *k < *end && *trans >= eps
+            });
+            round *= 2;
+        }
+        Ok((keep, sigma))
+    }
+
     /// Keeps the samples for which `keep` is true, preserving order and ray grouping.
     pub fn filter(&self, keep: &[bool]) -> Samples {
         let mut out = Samples {
@@ -196,5 +250,76 @@ impl PackedRays {
 
     pub fn num_samples(&self) -> usize {
         self.deltas.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rays of the given σ per sample, each sample one unit long.
+    fn samples(rays: &[Vec<f32>]) -> Samples {
+        let mut s = Samples {
+            packed: PackedRays {
+                offsets: vec![0],
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        for (r, sigma) in rays.iter().enumerate() {
+            for k in 0..sigma.len() {
+                s.positions.extend([k as f32, 0.0, 0.0]);
+                s.ray.push(r as u32);
+                s.packed.deltas.push(1.0);
+                s.packed.depths.push(k as f32);
+                s.packed.distances.push(k as f32);
+            }
+            s.packed.offsets.push(s.ray.len() as u32);
+        }
+        s
+    }
+
+    #[test]
+    fn front_to_back_keeps_samples_until_opaque_and_evaluates_no_further() {
+        let mut wall = vec![0.0; 200];
+        wall[20] = 50.0;
+        let rays = vec![vec![0.0, 20.0, 1.0, 1.0], vec![0.01; 100], wall, vec![]];
+        let s = samples(&rays);
+        let sigma: Vec<f32> = rays.concat();
+        let mut evaluated = Vec::new();
+        let (keep, got) = s
+            .front_to_back(1e-4, |idx| {
+                evaluated.extend_from_slice(idx);
+                Ok(idx.iter().map(|&k| sigma[k]).collect())
+            })
+            .unwrap();
+        // The same as walking every ray with every σ known.
+        let mut expected = Vec::new();
+        for ray in &rays {
+            let mut trans = 1.0f32;
+            for &sg in ray {
+                expected.push(trans >= 1e-4);
+                trans *= (-sg).exp();
+            }
+        }
+        assert_eq!(keep, expected);
+        assert_eq!(&keep[..4], &[true, true, false, false]);
+        assert!(
+            keep[4..104].iter().all(|&k| k),
+            "a thin ray is seen to its end"
+        );
+        let wall_start = 104;
+        assert_eq!(keep[wall_start..].iter().filter(|&&k| k).count(), 21);
+        // The wall's ray is evaluated in rounds of 16 and 32 samples and then left alone.
+        let on_wall: Vec<usize> = evaluated
+            .iter()
+            .filter(|&&k| k >= wall_start)
+            .copied()
+            .collect();
+        assert_eq!(on_wall, (wall_start..wall_start + 48).collect::<Vec<_>>());
+        for &k in &evaluated {
+            assert_eq!(got[k], sigma[k]);
+        }
+        assert_eq!(s.positions_of(&[1, 3]), vec![1.0, 0.0, 0.0, 3.0, 0.0, 0.0]);
     }
 }

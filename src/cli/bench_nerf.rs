@@ -106,6 +106,9 @@ pub fn run(args: BenchNerfArgs) -> anyhow::Result<()> {
     if let Some(o) = report.empty_opacity {
         println!("mean opacity where the truth sees nothing (background at infinity): {o:.3}");
     }
+    if let Some(o) = report.test_opacity {
+        println!("mean opacity of the test pixels: {o:.3}");
+    }
     println!(
         "samples per ray (training): {:.1}; occupied cells: {:.1}%",
         report.samples_per_ray,

@@ -177,6 +177,34 @@ impl RadianceField {
         Ok((sigma, geometry))
     }
 
+    /// The samples each ray still sees (transmittance in front of them ≥ `eps`), found front
+    /// to back ([`Samples::front_to_back`]), and their normalised positions, σ and geometry
+    /// features, without gradients; the arrays are indexed like `marched` and hold zeros
+    /// where a sample was not evaluated.
+    pub fn visible_geometry(
+        &self,
+        marched: &Samples,
+        eps: f32,
+    ) -> Result<(Vec<bool>, GeometryValues)> {
+        let g = self.config.geometry_features;
+        let n = marched.ray.len();
+        let (mut points01, mut geometry) = (vec![0.0; 3 * n], vec![0.0; g * n]);
+        let (keep, sigma) = marched.front_to_back(eps, |idx| {
+            let v = self.geometry_values(&marched.positions_of(idx))?;
+            for (j, &k) in idx.iter().enumerate() {
+                points01[3 * k..3 * k + 3].copy_from_slice(&v.points01[3 * j..3 * j + 3]);
+                geometry[g * k..g * (k + 1)].copy_from_slice(&v.geometry[g * j..g * (j + 1)]);
+            }
+            Ok(v.sigma)
+        })?;
+        let values = GeometryValues {
+            points01,
+            sigma,
+            geometry,
+        };
+        Ok((keep, values))
+    }
+
     /// σ at packed field-space positions, without gradients (occupancy updates, pruning).
     pub fn density_values(&self, positions: &[f32]) -> Result<Vec<f32>> {
         let mut out = Vec::with_capacity(positions.len() / 3);
@@ -189,7 +217,7 @@ impl RadianceField {
 
     /// Normalised positions, σ and geometry features at packed field-space positions, without
     /// gradients: what a cache of the frozen density keeps.
-    pub fn geometry_values(&self, positions: &[f32]) -> Result<GeometryValues> {
+    fn geometry_values(&self, positions: &[f32]) -> Result<GeometryValues> {
         let n = positions.len() / 3;
         let mut out = GeometryValues {
             points01: Vec::with_capacity(3 * n),

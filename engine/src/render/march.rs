@@ -88,23 +88,6 @@ pub fn march(
     out
 }
 
-/// Marks samples after which the ray's transmittance has fallen below `eps` (given σ per
-/// sample): they cannot change the rendered colour noticeably, so training skips them.
-pub fn early_stop_mask(samples: &Samples, sigma: &[f32], eps: f32) -> Vec<bool> {
-    let mut keep = vec![false; sigma.len()];
-    for w in samples.packed.offsets.windows(2) {
-        let mut trans = 1.0f32;
-        for k in w[0] as usize..w[1] as usize {
-            if trans < eps {
-                break;
-            }
-            keep[k] = true;
-            trans *= (-sigma[k] * samples.packed.deltas[k]).exp();
-        }
-    }
-    keep
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -213,23 +196,5 @@ mod tests {
             let (_, _, z0) = cam.project(first); // inside the unit cube: contracted = world
             assert!((s.packed.depths[range.start] - z0).abs() < 1e-4);
         }
-    }
-
-    #[test]
-    fn early_stop_keeps_samples_until_opaque() {
-        let s = Samples {
-            positions: vec![0.0; 12],
-            ray: vec![0; 4],
-            packed: PackedRays {
-                offsets: vec![0, 4],
-                deltas: vec![1.0; 4],
-                depths: vec![0.0; 4],
-                distances: vec![0.0, 1.0, 2.0, 3.0],
-            },
-        };
-        assert_eq!(
-            early_stop_mask(&s, &[0.0, 20.0, 1.0, 1.0], 1e-4),
-            vec![true, true, false, false]
-        );
     }
 }

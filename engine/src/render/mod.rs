@@ -12,7 +12,7 @@ use candle_core::Tensor;
 use crate::field::radiance::{FieldSamples, RadianceField};
 use crate::rays::{DepthModel, PackedRays, RayBatch, Samples, SamplingConfig};
 use crate::render::composite::{composite, split_with_background};
-use crate::render::march::{early_stop_mask, march};
+use crate::render::march::march;
 use crate::rng::Rng;
 use crate::Result;
 
@@ -78,8 +78,10 @@ pub fn render_rays(
 ) -> Result<RenderOutput> {
     let marched = march_field(field, rays, cfg, rng);
     // A cheap gradient-free density pass finds where each ray becomes opaque.
-    let sigma = field.density_values(&marched.positions)?;
-    let samples = marched.filter(&early_stop_mask(&marched, &sigma, cfg.early_stop_eps));
+    let (keep, _) = marched.front_to_back(cfg.early_stop_eps, |idx| {
+        field.density_values(&marched.positions_of(idx))
+    })?;
+    let samples = marched.filter(&keep);
     let evaluated = if samples.ray.is_empty() {
         None
     } else {
@@ -88,8 +90,8 @@ pub fn render_rays(
     finish(field, rays, &samples, evaluated, colour)
 }
 
-/// [`render_rays`] for inference: no jitter and no gradients, so the one density pass that
-/// finds where each ray becomes opaque also gives the kept samples' σ and geometry features.
+/// [`render_rays`] for inference: no jitter and no gradients, so the density passes that
+/// find where each ray becomes opaque also give the kept samples' σ and geometry features.
 fn render_rays_inference(
     field: &RadianceField,
     rays: &RayBatch,
@@ -97,8 +99,7 @@ fn render_rays_inference(
     colour: &ColourFn,
 ) -> Result<RenderOutput> {
     let marched = march_field(field, rays, cfg, None);
-    let values = field.geometry_values(&marched.positions)?;
-    let keep = early_stop_mask(&marched, &values.sigma, cfg.early_stop_eps);
+    let (keep, values) = field.visible_geometry(&marched, cfg.early_stop_eps)?;
     let samples = marched.filter(&keep);
     let evaluated = if samples.ray.is_empty() {
         None

@@ -181,6 +181,11 @@ pub struct NerfReport {
     /// Mean rendered opacity of test pixels whose ground truth sees nothing (depth 0: a
     /// background at infinity); 0 is right, haze raises it.
     pub empty_opacity: Option<f64>,
+    /// Mean rendered opacity over every test pixel. With a learned background, an indoor
+    /// capture should be opaque everywhere: what is missing is painted by the background,
+    /// which has no parallax.
+    #[serde(default)]
+    pub test_opacity: Option<f64>,
     /// Mean field samples per ray while training (after occupancy and early-stop pruning).
     #[serde(default)]
     pub samples_per_ray: f64,
@@ -402,6 +407,7 @@ pub fn run(
         depth_mae_relative: depth.map(|d| d / extent),
         depth_median_relative_error: eval.depth_median_relative,
         empty_opacity: eval.empty_opacity,
+        test_opacity: eval.opacity,
         samples_per_ray: samples_total as f64 / rays_total.max(1) as f64,
         occupied_fraction: field.occupancy.occupied_fraction() as f64,
         resolution: scene.resolution(),
@@ -483,6 +489,7 @@ struct TestMetrics {
     depth_mae: Option<f64>,
     depth_median_relative: Option<f64>,
     empty_opacity: Option<f64>,
+    opacity: Option<f64>,
 }
 
 /// Renders the test views: mean PSNR and, with ground truth, depth errors and the opacity
@@ -498,6 +505,7 @@ fn evaluate(
     let (mut depth_err, mut depth_count) = (0.0f64, 0usize);
     let mut relative = Vec::new();
     let (mut empty, mut empty_count) = (0.0f64, 0usize);
+    let (mut opacity, mut pixels) = (0.0f64, 0usize);
     for &i in &scene.test {
         let frame = &scene.frames[i];
         let k = frame.camera.intrinsics;
@@ -516,6 +524,8 @@ fn evaluate(
             .sum::<f64>()
             / img.rgb.len() as f64;
         psnrs.push(-10.0 * mse.max(1e-12).log10());
+        opacity += img.opacity.iter().map(|&o| o as f64).sum::<f64>();
+        pixels += img.opacity.len();
         if let Some(gt) = &frame.depth {
             for ((d, o), g) in img.depth.iter().zip(&img.opacity).zip(gt) {
                 if *o > 0.5 && *g > 0.0 {
@@ -555,5 +565,6 @@ fn evaluate(
         depth_mae: (depth_count > 0).then(|| depth_err / depth_count as f64),
         depth_median_relative: relative.get(relative.len() / 2).map(|&r| r as f64),
         empty_opacity: (empty_count > 0).then(|| empty / empty_count as f64),
+        opacity: (pixels > 0).then(|| opacity / pixels as f64),
     })
 }

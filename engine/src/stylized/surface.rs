@@ -105,9 +105,9 @@ impl SurfaceSamples {
         for part in idx.chunks(CHUNK) {
             let batch = rays.select(part);
             let marched = march_field(field, &batch, &meta.sampling, None);
-            // One pass of the density network over the marched samples gives σ for the
+            // The density network, front to back until each ray is opaque, gives σ for the
             // weights and the geometry features of the samples that keep one.
-            let values = field.geometry_values(&marched.positions)?;
+            let (_, values) = field.visible_geometry(&marched, MIN_WEIGHT)?;
             let mut kept: Vec<(usize, f32)> = Vec::new();
             for w in marched.packed.offsets.windows(2) {
                 let mut transmittance = 1.0f32;
