@@ -77,7 +77,7 @@ pub fn render_rays(
     rng: Option<&mut Rng>,
 ) -> Result<RenderOutput> {
     let marched = march_field(field, rays, cfg, rng);
-    // A cheap gradient-free density pass finds where each ray becomes opaque.
+    // Cheap gradient-free density passes, front to back, find where each ray becomes opaque.
     let (keep, _) = marched.front_to_back(cfg.early_stop_eps, |idx| {
         field.density_values(&marched.positions_of(idx))
     })?;
