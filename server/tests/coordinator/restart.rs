@@ -92,18 +92,36 @@ async fn health_reports_not_serving_while_draining() {
     stopping.await.unwrap().unwrap();
 }
 
-/// Snapshots in the store (`backups/coordinator-*.db`), by name.
+/// Snapshots in the store (`backups/coordinator-*.db`), by name, oldest first. The local
+/// store stages an upload under another name beside it, which is not a snapshot yet.
 fn backups(store: &std::path::Path) -> Vec<String> {
     let mut names: Vec<String> = std::fs::read_dir(store.join("backups"))
         .map(|entries| {
             entries
                 .flatten()
                 .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|name| name.starts_with("coordinator-") && name.ends_with(".db"))
                 .collect()
         })
         .unwrap_or_default();
     names.sort();
     names
+}
+
+/// Waits (up to a minute) until the store's snapshots satisfy `done`.
+async fn wait_for_backups(
+    store: &std::path::Path,
+    done: impl Fn(&[String]) -> bool,
+) -> Vec<String> {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    loop {
+        let names = backups(store);
+        if done(&names) {
+            return names;
+        }
+        assert!(std::time::Instant::now() < deadline, "snapshots: {names:?}");
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
 }
 
 #[tokio::test]
@@ -116,16 +134,17 @@ async fn a_lost_database_is_restored_from_the_store() {
     let server = start(first.clone()).await;
     let mut client = jobs_client(&server, Some(ALICE)).await;
     let job = create_job(&mut client).await;
-    // Periodic snapshots while serving, pruned to the newest two.
-    for _ in 0..100 {
-        if backups(&store).len() == 2 {
-            break;
-        }
-        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
-    }
-    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
-    assert_eq!(backups(&store).len(), 2, "{:?}", backups(&store));
+    // Periodic snapshots while serving (waited for, not timed: a loaded machine is slow)...
+    let first_two = wait_for_backups(&store, |names| names.len() >= 2).await;
+    wait_for_backups(&store, |names| names.iter().any(|n| !first_two.contains(n))).await;
     server.shutdown().await.unwrap();
+    // ... pruned to the newest two: a later periodic one and the one taken at shutdown.
+    let kept = backups(&store);
+    assert_eq!(kept.len(), 2, "{kept:?}");
+    assert!(
+        kept.iter().all(|n| !first_two.contains(n)),
+        "{first_two:?} pruned: {kept:?}"
+    );
 
     // The machine is gone with its volume: a new coordinator, a new (empty) database path,
     // the same store.
