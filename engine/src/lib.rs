@@ -35,6 +35,7 @@ pub mod views;
 
 mod cpu_ops;
 mod curves;
+mod depth_error;
 mod eval;
 mod malloc;
 mod named;

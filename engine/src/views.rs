@@ -1,6 +1,6 @@
 //! The output of the `render_views` stage and the input of every later stage: rendered RGB,
-//! expected z-depth and opacity for a list of cameras (training poses and an interpolated
-//! path).
+//! z-depth (each ray's median termination) and opacity for a list of cameras (training poses
+//! and an interpolated path).
 //!
 //! On disk: `cameras.json` (size and the cameras), `views.safetensors` (`rgb` [N, H, W, 3],
 //! `depth` [N, H, W] in world units along the camera axis, `opacity` [N, H, W], and

@@ -100,6 +100,13 @@ fn tiny_training_reaches_a_psnr_floor_and_renders_views() {
         "depth MAE {}",
         err / n as f32
     );
+    // The stage grades its depth against the truth over every training view itself.
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(views_dir.join("metrics.json")).unwrap()).unwrap();
+    let graded = &metrics["depth_against_truth"];
+    assert!(graded["pixels"].as_u64().unwrap() as usize > n, "{metrics}");
+    let mae = graded["mae"].as_f64().unwrap() as f32;
+    assert!(mae > 0.0 && mae < 0.1 * extent, "{metrics}");
 
     // render_views' inference path (one density pass per sample) renders what the training
     // path (a gradient-free pass, then a second pass on the kept samples) renders.

@@ -8,6 +8,9 @@
 //! `g_k = ∂L/∂C · c_k + ∂L/∂D · z_k + ∂L/∂O` and `G = Σ_j w_j g_j`,
 //! `∂L/∂σ_k = δ_k (T_{k+1} g_k − (G − Σ_{j≤k} w_j g_j))` and `∂L/∂c_k = w_k ∂L/∂C`.
 //! Other devices use a composed version on a padded [R, max samples] layout.
+//!
+//! Rendered images report each ray's median depth instead of `D / O` ([`median_depth`], from
+//! the weights of [`sample_weights`]): the depth later stages warp with.
 
 use std::sync::Arc;
 
@@ -241,6 +244,40 @@ impl CustomOp3 for CompositeBackward {
     }
 }
 
+/// Each sample's weight `w_k = T_k (1 − exp(−σ_k δ_k))` (σ [S] as values), as composited.
+pub fn sample_weights(sigma: &[f32], rays: &PackedRays) -> Vec<f32> {
+    let mut weights = Vec::with_capacity(sigma.len());
+    for ray in rays.offsets.windows(2) {
+        let r = ray[0] as usize..ray[1] as usize;
+        let mut trans = 1.0f64;
+        for (s, d) in sigma[r.clone()].iter().zip(&rays.deltas[r]) {
+            let decay = (-f64::from(*s) * f64::from(*d)).exp();
+            weights.push((trans * (1.0 - decay)) as f32);
+            trans *= decay;
+        }
+    }
+    weights
+}
+
+/// The median of one ray's termination: the depth of the sample at which the accumulated
+/// weight reaches half of the ray's opacity (to the sample). Where a pixel sees a silhouette,
+/// the expected depth `D / O` averages foreground and background into the empty space between
+/// them and warps the pixel there; the median picks one surface. `None` without weight.
+pub fn median_depth(weights: &[f32], depths: &[f32]) -> Option<f32> {
+    let total: f32 = weights.iter().sum();
+    if total <= 0.0 {
+        return None;
+    }
+    let mut accumulated = 0.0;
+    for (w, z) in weights.iter().zip(depths) {
+        accumulated += w;
+        if accumulated >= 0.5 * total {
+            return Some(*z);
+        }
+    }
+    depths.last().copied()
+}
+
 /// Adds the background where the ray is not opaque: rgb + (1 − opacity) · background.
 /// `out` is the [R, 5] composite and `background` `[1, 3]` or `[R, 3]`; returns ([R, 3]
 /// colour, [R] depth, [R] opacity).
@@ -279,6 +316,45 @@ mod tests {
             rays.offsets.push(last + count);
         }
         Arc::new(rays)
+    }
+
+    #[test]
+    fn median_depth_picks_a_surface_where_the_mean_lies_between_two() {
+        // A silhouette: 0.45 of the pixel on the fox at z = 1, 0.55 on the wall at z = 3.
+        let (weights, depths) = ([0.3, 0.15, 0.05, 0.5], [1.0, 1.01, 2.99, 3.0]);
+        let mean = weights.iter().zip(&depths).map(|(w, z)| w * z).sum::<f32>();
+        assert!(
+            (mean - 2.1).abs() < 0.01,
+            "the mean lands in the empty space: {mean}"
+        );
+        assert_eq!(median_depth(&weights, &depths), Some(2.99));
+        // Half the opacity, not half of one: a ray 0.4 opaque ends where 0.2 is reached.
+        assert_eq!(median_depth(&[0.1, 0.1, 0.2], &[1.0, 2.0, 3.0]), Some(2.0));
+        assert_eq!(median_depth(&[0.0, 0.0], &[1.0, 2.0]), None);
+        assert_eq!(median_depth(&[], &[]), None);
+    }
+
+    #[test]
+    fn sample_weights_are_the_composited_weights() {
+        let mut rng = Rng::new(9);
+        let rays = batch(&mut rng);
+        let s = rays.num_samples();
+        let sigma: Vec<f32> = (0..s).map(|_| 8.0 * rng.uniform()).collect();
+        let weights = sample_weights(&sigma, &rays);
+        let ones = Tensor::ones((s, 3), candle_core::DType::F32, &Device::Cpu).unwrap();
+        let sigma_t = Tensor::from_slice(&sigma, s, &Device::Cpu).unwrap();
+        let out = composite(&sigma_t, &ones, &rays)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
+        for (r, ray) in rays.offsets.windows(2).enumerate() {
+            let opacity: f32 = weights[ray[0] as usize..ray[1] as usize].iter().sum();
+            assert!(
+                (opacity - out[r][4]).abs() < 1e-5,
+                "ray {r}: {opacity} vs {}",
+                out[r][4]
+            );
+        }
     }
 
     #[test]

@@ -11,7 +11,7 @@ use candle_core::Tensor;
 
 use crate::field::radiance::{FieldSamples, RadianceField};
 use crate::rays::{DepthModel, PackedRays, RayBatch, Samples, SamplingConfig};
-use crate::render::composite::{composite, split_with_background};
+use crate::render::composite::{composite, median_depth, sample_weights, split_with_background};
 use crate::render::march::march;
 use crate::rng::Rng;
 use crate::Result;
@@ -140,8 +140,8 @@ fn finish(
     })
 }
 
-/// A rendered image: interleaved RGB, z-depth (divided by opacity: the surface depth) and
-/// opacity, row-major.
+/// A rendered image: interleaved RGB, z-depth (the median of each ray's termination,
+/// [`median_depth`]; 0 where nothing is opaque) and opacity, row-major.
 pub struct ImageOutput {
     pub rgb: Vec<f32>,
     pub depth: Vec<f32>,
@@ -167,13 +167,21 @@ pub fn render_image(
         img.rgb
             .extend(out.rgb.detach().flatten_all()?.to_vec1::<f32>()?);
         let opacity: Vec<f32> = out.opacity.detach().to_vec1()?;
-        let depth: Vec<f32> = out.depth.detach().to_vec1()?;
-        img.depth.extend(
-            depth
-                .iter()
-                .zip(&opacity)
-                .map(|(d, o)| if *o > 1e-3 { d / o } else { 0.0 }),
-        );
+        match &out.samples {
+            Some((sigma, packed)) => {
+                let weights = sample_weights(&sigma.detach().to_vec1()?, packed);
+                img.depth
+                    .extend(packed.offsets.windows(2).zip(&opacity).map(|(r, o)| {
+                        let r = r[0] as usize..r[1] as usize;
+                        if *o > 1e-3 {
+                            median_depth(&weights[r.clone()], &packed.depths[r]).unwrap_or(0.0)
+                        } else {
+                            0.0
+                        }
+                    }))
+            }
+            None => img.depth.extend(std::iter::repeat_n(0.0, part.len())),
+        }
         img.opacity.extend(opacity);
     }
     Ok(img)

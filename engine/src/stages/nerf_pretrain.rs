@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::write_atomic;
 use crate::curves::{self, Series};
+use crate::depth_error::DepthErrors;
 use crate::field::hash_grid::HashGridConfig;
 use crate::field::radiance::{FieldConfig, RadianceField};
 use crate::field::saved::{self, FieldMeta};
@@ -504,9 +505,7 @@ fn evaluate(
     images: Option<&Path>,
 ) -> Result<TestMetrics> {
     let mut psnrs = Vec::new();
-    let (mut depth_err, mut depth_count) = (0.0f64, 0usize);
-    let mut relative = Vec::new();
-    let (mut empty, mut empty_count) = (0.0f64, 0usize);
+    let mut depth = DepthErrors::default();
     let (mut opacity, mut pixels) = (0.0f64, 0usize);
     for &i in &scene.test {
         let frame = &scene.frames[i];
@@ -528,17 +527,8 @@ fn evaluate(
         psnrs.push(-10.0 * mse.max(1e-12).log10());
         opacity += img.opacity.iter().map(|&o| o as f64).sum::<f64>();
         pixels += img.opacity.len();
-        if let Some(gt) = &frame.depth {
-            for ((d, o), g) in img.depth.iter().zip(&img.opacity).zip(gt) {
-                if *o > 0.5 && *g > 0.0 {
-                    depth_err += (d - g).abs() as f64;
-                    depth_count += 1;
-                    relative.push(((d - g) / g).abs());
-                } else if *g == 0.0 {
-                    empty += *o as f64;
-                    empty_count += 1;
-                }
-            }
+        if let Some(truth) = &frame.depth {
+            depth.add(&img.depth, &img.opacity, truth);
         }
         if let Some(dir) = images {
             let name = Path::new(&frame.name)
@@ -561,12 +551,12 @@ fn evaluate(
             )?;
         }
     }
-    relative.sort_by(f32::total_cmp);
+    let errors = depth.summary();
     Ok(TestMetrics {
         psnr: (!psnrs.is_empty()).then(|| psnrs.iter().sum::<f64>() / psnrs.len() as f64),
-        depth_mae: (depth_count > 0).then(|| depth_err / depth_count as f64),
-        depth_median_relative: relative.get(relative.len() / 2).map(|&r| r as f64),
-        empty_opacity: (empty_count > 0).then(|| empty / empty_count as f64),
+        depth_mae: errors.map(|e| e.mae),
+        depth_median_relative: errors.map(|e| e.median_relative),
+        empty_opacity: depth.empty_opacity(),
         opacity: (pixels > 0).then(|| opacity / pixels as f64),
     })
 }

@@ -680,6 +680,16 @@ pub fn markdown_table(report: &RenderStylizedReport, cfg: &RenderStylizedConfig)
             p.short_range.rmse, p.short_range.mae, p.long_range.rmse, p.long_range.mae
         );
     }
+    if let Some(m) = report.specs.iter().flat_map(|s| &s.methods).next() {
+        s += &format!(
+            "\nThe warped errors cover the pixels whose point both views see at the field's depth \
+             (the same pixels for every method): {:.1} % at gap {}, {:.1} % at gap {}.\n",
+            100.0 * m.short_range.coverage,
+            cfg.short_gap,
+            100.0 * m.long_range.coverage,
+            cfg.long_gap
+        );
+    }
     s += "\nColour SWD and texture distance are measured outside the encoder, against the spec's \
           main style image (lower: closer to the painting); the unstylized row is the floor a \
           method that transfers no style would score.\n";

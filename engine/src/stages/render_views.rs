@@ -1,14 +1,16 @@
-//! Stage 2, `render_views`: render RGB, expected z-depth and opacity from the trained field at
-//! every training pose and along an interpolated camera path (slerp of rotations, lerp of
-//! centres, through evenly spaced training poses). These views are the training data of the 2D
-//! network and of mutual learning; their depth gives the geometry used for warping. The
-//! dataset's ground-truth depth, when the field carries it, is laid over the training views.
+//! Stage 2, `render_views`: render RGB, z-depth (the median of each ray's termination) and
+//! opacity from the trained field at every training pose and along an interpolated camera path
+//! (slerp of rotations, lerp of centres, through evenly spaced training poses). These views are
+//! the training data of the 2D network and of mutual learning; their depth gives the geometry
+//! used for warping. The dataset's ground-truth depth, when the field carries it, is laid over
+//! the training views, and the rendered depth is graded against it (`metrics.json`).
 
 use std::path::Path;
 
 use candle_core::Device;
 use serde::{Deserialize, Serialize};
 
+use crate::depth_error::DepthErrors;
 use crate::field::saved;
 use crate::render::render_image;
 use crate::stages::camera_paths::interpolated_path;
@@ -128,6 +130,12 @@ pub fn run(
         });
     }
     rendered.true_depth = truth.map(|truth| carry_true_depth(&rendered, &truth));
+    // The depth every later stage warps with, graded where the dataset has the truth.
+    let depth_errors = rendered.true_depth.as_ref().and_then(|truth| {
+        let mut errors = DepthErrors::default();
+        errors.add(&rendered.depth, &rendered.opacity, truth);
+        errors.summary()
+    });
     let (near, far) = depth_range(&rendered);
     rendered.save(out, near, far)?;
     // Written last: its presence marks the stage complete.
@@ -136,6 +144,7 @@ pub fn run(
         &serde_json::json!({
             "views": rendered.len(),
             "seconds": started.elapsed().as_secs_f64(),
+            "depth_against_truth": depth_errors,
         }),
     )?;
     Ok(Outcome::Done(rendered))

@@ -14,6 +14,7 @@ use candle_core::{Device, Tensor};
 use crate::camera::Camera;
 use crate::field::radiance::RadianceField;
 use crate::field::saved::FieldMeta;
+use crate::render::composite::median_depth;
 use crate::render::march_field;
 use crate::Result;
 
@@ -139,8 +140,8 @@ impl SurfaceSamples {
         Ok(out)
     }
 
-    /// Expected surface z-depth of each ray (Σ w d / Σ w), 0 where the opacity is below
-    /// `min_opacity`.
+    /// Surface z-depth of each ray, the median of its kept samples' weights
+    /// ([`median_depth`], as rendered images have it), 0 where the opacity is below `min_opacity`.
     pub fn surface_depth(&self, min_opacity: f32) -> Vec<f32> {
         self.offsets
             .windows(2)
@@ -150,8 +151,7 @@ impl SurfaceSamples {
                 if total < min_opacity {
                     return 0.0;
                 }
-                let wd: f32 = r.map(|k| self.weights[k] * self.depths[k]).sum();
-                wd / total
+                median_depth(&self.weights[r.clone()], &self.depths[r]).unwrap_or(0.0)
             })
             .collect()
     }
