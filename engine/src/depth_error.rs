@@ -56,7 +56,7 @@ impl DepthErrors {
             mae: self.abs_sum / n as f64,
             median_relative: at(0.5),
             p90_relative: at(0.9),
-            over_5_percent: relative.iter().filter(|&&r| r > 0.05).count() as f64 / n as f64,
+            over_5_percent: (n - relative.partition_point(|&r| r <= 0.05)) as f64 / n as f64,
         })
     }
 
