@@ -15,6 +15,7 @@ use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
+use crate::per_view::per_view;
 use crate::style2d::encoder::VggEncoder;
 use crate::style2d::losses::{content_loss, style_loss};
 use crate::style2d::network::StyleTarget;
@@ -108,12 +109,22 @@ pub fn fidelity(
     reference_features: &[Tensor],
     style: &StyleTarget,
 ) -> Result<(f64, f64)> {
-    let (mut st, mut ct) = (0.0, 0.0);
-    for (f, reference) in frames.iter().zip(reference_features) {
-        let feats = encoder.features(&f.unsqueeze(0)?)?;
-        st += style_loss(&feats, &style.stats)?.to_scalar::<f32>()? as f64;
-        ct += content_loss(&feats[3], reference)?.to_scalar::<f32>()? as f64;
-    }
+    let losses = per_view(
+        frames.len().min(reference_features.len()),
+        frames.first().map_or(&Device::Cpu, |f| f.device()),
+        None,
+        |k| {
+            let feats = encoder.features(&frames[k].unsqueeze(0)?)?;
+            Ok((
+                style_loss(&feats, &style.stats)?.to_scalar::<f32>()? as f64,
+                content_loss(&feats[3], &reference_features[k])?.to_scalar::<f32>()? as f64,
+            ))
+        },
+        |_| {},
+    )?;
+    let (st, ct) = losses
+        .iter()
+        .fold((0.0, 0.0), |(s, c), (ds, dc)| (s + ds, c + dc));
     let n = frames.len().max(1) as f64;
     Ok((st / n, ct / n))
 }

@@ -40,6 +40,7 @@ mod eval;
 mod malloc;
 mod named;
 mod optim;
+mod per_view;
 mod rays;
 mod rng;
 mod stylized;

@@ -13,6 +13,8 @@
 //! the size the pipeline reads them ([`crate::stages::render_stylized::RenderStylizedConfig`]
 //! `style_size`), so brush strokes have the scale the network sees.
 
+use rayon::prelude::*;
+
 use crate::rng::Rng;
 
 /// CIE Lab (D65) of an sRGB colour in [0, 1].
@@ -120,9 +122,21 @@ pub struct Texture {
 impl Texture {
     /// The signature of images given as (width, height, interleaved RGB in [0, 1]).
     pub fn of(images: &[(usize, usize, &[f32])]) -> Self {
+        // One image per thread, summed in the images' order: the same sums as one at a time.
+        let per_image: Vec<Texture> = images
+            .par_iter()
+            .map(|&(w, h, rgb)| {
+                let mut t = Self::default();
+                t.add(w, h, rgb);
+                t
+            })
+            .collect();
         let mut t = Self::default();
-        for &(w, h, rgb) in images {
-            t.add(w, h, rgb);
+        for image in &per_image {
+            for k in 0..ORIENTATIONS * LEVELS {
+                t.sums[k] += image.sums[k];
+                t.counts[k] += image.counts[k];
+            }
         }
         t
     }

@@ -29,6 +29,7 @@ use crate::curves::{self, Series, Term};
 use crate::field::saved;
 use crate::named::{load_vars, tensors_of};
 use crate::optim::{Adam, AdamConfig};
+use crate::per_view::per_view;
 use crate::rng::Rng;
 use crate::stages::decoder_pretrain::{crop_views, StylesFile};
 use crate::stages::training::Training;
@@ -221,31 +222,32 @@ impl TrainingViews {
             ));
         }
         let (field, meta) = saved::load(inputs.field_dir, device)?;
-        let (mut surfaces, mut features) = (Vec::new(), Vec::new());
-        for (k, &i) in indices.iter().enumerate() {
-            if control.is_cancelled() {
-                return Err(EngineError::Cancelled);
-            }
-            surfaces.push(SurfaceSamples::for_camera(
-                &field,
-                &meta,
-                &views.views[i].camera,
-            )?);
-            let x = hwc_to_tensor(
-                views.rgb(i),
-                views.width as usize,
-                views.height as usize,
-                device,
-            )?;
-            features.push(encoder.relu4_1(&x)?.detach());
-            control.report(&Progress {
-                stage: "mutual_learning".into(),
-                step: 0,
-                total: 0,
-                metrics: [("views_prepared".to_string(), (k + 1) as f64)].into(),
-                ..Default::default()
-            });
-        }
+        let prepared = per_view(
+            indices.len(),
+            device,
+            Some(control),
+            |k| {
+                let i = indices[k];
+                let surface = SurfaceSamples::for_camera(&field, &meta, &views.views[i].camera)?;
+                let x = hwc_to_tensor(
+                    views.rgb(i),
+                    views.width as usize,
+                    views.height as usize,
+                    device,
+                )?;
+                Ok((surface, encoder.relu4_1(&x)?.detach()))
+            },
+            |done| {
+                control.report(&Progress {
+                    stage: "mutual_learning".into(),
+                    step: 0,
+                    total: 0,
+                    metrics: [("views_prepared".to_string(), done as f64)].into(),
+                    ..Default::default()
+                })
+            },
+        )?;
+        let (surfaces, features) = prepared.into_iter().unzip();
         Ok(Self {
             views,
             indices,

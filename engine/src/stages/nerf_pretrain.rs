@@ -19,6 +19,7 @@ use crate::field::radiance::{FieldConfig, RadianceField};
 use crate::field::saved::{self, FieldMeta};
 use crate::field::space::FieldSpace;
 use crate::optim::{Adam, AdamConfig, LrSchedule};
+use crate::per_view::per_view;
 use crate::rays::{RayBatch, SamplingConfig};
 use crate::render::distortion::distortion_loss;
 use crate::render::{render_image, render_rays, step_size};
@@ -504,19 +505,49 @@ fn evaluate(
     cfg: &NerfConfig,
     images: Option<&Path>,
 ) -> Result<TestMetrics> {
+    let rendered = per_view(
+        scene.test.len(),
+        field.device(),
+        None,
+        |t| {
+            let frame = &scene.frames[scene.test[t]];
+            let img = render_image(
+                field,
+                &meta.camera_rays(&frame.camera),
+                &cfg.sampling,
+                &|s| field.colour(s),
+                cfg.render_chunk,
+            )?;
+            if let Some(dir) = images {
+                let k = frame.camera.intrinsics;
+                let name = Path::new(&frame.name)
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| format!("{:04}", scene.test[t]));
+                crate::image_io::save_rgb_png(
+                    &dir.join(format!("{name}.png")),
+                    k.width,
+                    k.height,
+                    &img.rgb,
+                )?;
+                // Opacity as grey levels: haze in front of a real background shows at a glance.
+                let grey: Vec<f32> = img.opacity.iter().flat_map(|&o| [o; 3]).collect();
+                crate::image_io::save_rgb_png(
+                    &dir.join(format!("{name}.opacity.png")),
+                    k.width,
+                    k.height,
+                    &grey,
+                )?;
+            }
+            Ok(img)
+        },
+        |_| {},
+    )?;
     let mut psnrs = Vec::new();
     let mut depth = DepthErrors::default();
     let (mut opacity, mut pixels) = (0.0f64, 0usize);
-    for &i in &scene.test {
+    for (img, &i) in rendered.iter().zip(&scene.test) {
         let frame = &scene.frames[i];
-        let k = frame.camera.intrinsics;
-        let img = render_image(
-            field,
-            &meta.camera_rays(&frame.camera),
-            &cfg.sampling,
-            &|s| field.colour(s),
-            cfg.render_chunk,
-        )?;
         let mse = img
             .rgb
             .iter()
@@ -529,26 +560,6 @@ fn evaluate(
         pixels += img.opacity.len();
         if let Some(truth) = &frame.depth {
             depth.add(&img.depth, &img.opacity, truth);
-        }
-        if let Some(dir) = images {
-            let name = Path::new(&frame.name)
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_else(|| format!("{i:04}"));
-            crate::image_io::save_rgb_png(
-                &dir.join(format!("{name}.png")),
-                k.width,
-                k.height,
-                &img.rgb,
-            )?;
-            // Opacity as grey levels: haze in front of a real background shows at a glance.
-            let grey: Vec<f32> = img.opacity.iter().flat_map(|&o| [o; 3]).collect();
-            crate::image_io::save_rgb_png(
-                &dir.join(format!("{name}.opacity.png")),
-                k.width,
-                k.height,
-                &grey,
-            )?;
         }
     }
     let errors = depth.summary();

@@ -28,6 +28,7 @@ use crate::eval::{fidelity, GapError, PathWarps};
 use crate::field::radiance::RadianceField;
 use crate::field::saved::{self, FieldMeta};
 use crate::image_io;
+use crate::per_view::per_view;
 use crate::stages::decoder_pretrain::crop_views;
 use crate::stages::mutual_learning::LatentsFile;
 use crate::stages::pose_consistency::{PoseFrames, PoseScores, GAPS};
@@ -306,7 +307,7 @@ fn path_frames(
     device: &Device,
 ) -> Result<PathFrames> {
     let (width, height) = (views.width as usize, views.height as usize);
-    let (cameras, given): (Vec<Camera>, bool) = match path {
+    let (mut cameras, given): (Vec<Camera>, bool) = match path {
         Some(p) => (p.to_vec(), true),
         None => (
             views
@@ -321,20 +322,8 @@ fn path_frames(
         return Err(EngineError::config("path", "the camera path is empty"));
     }
     let s = VggArch::STRIDE as u32;
-    let mut out = PathFrames {
-        cameras: Vec::new(),
-        photoreal: Vec::new(),
-        depths: Vec::new(),
-        surfaces: Vec::new(),
-        width,
-        height,
-    };
-    let path_views = views.path_indices();
-    for (k, mut cam) in cameras.into_iter().enumerate() {
-        if control.is_cancelled() {
-            return Err(EngineError::Cancelled);
-        }
-        if given {
+    if given {
+        for (k, cam) in cameras.iter_mut().enumerate() {
             // Crop (top-left) to the stride, as the rendered views are.
             cam.intrinsics.width = cam.intrinsics.width / s * s;
             cam.intrinsics.height = cam.intrinsics.height / s * s;
@@ -352,38 +341,59 @@ fn path_frames(
                 ));
             }
         }
-        let surface = SurfaceSamples::for_camera(field, meta, &cam)?;
-        let (rgb, depth) = if given {
-            let img = crate::render::render_image(
-                field,
-                &meta.camera_rays(&cam),
-                &meta.sampling,
-                &|s| field.colour(s),
-                8192,
-            )?;
-            (img.rgb, surface.surface_depth(cfg.min_opacity))
-        } else {
-            let i = path_views[k];
-            let depth = views
-                .depth(i)
-                .iter()
-                .zip(views.opacity(i))
-                .map(|(&d, &o)| if o >= cfg.min_opacity { d } else { 0.0 })
-                .collect();
-            (views.rgb(i).to_vec(), depth)
-        };
-        out.photoreal
-            .push(hwc_to_tensor(&rgb, width, height, device)?.squeeze(0)?);
+    }
+    let path_views = views.path_indices();
+    let frames = per_view(
+        cameras.len(),
+        device,
+        Some(control),
+        |k| {
+            let cam = &cameras[k];
+            let surface = SurfaceSamples::for_camera(field, meta, cam)?;
+            let (rgb, depth) = if given {
+                let img = crate::render::render_image(
+                    field,
+                    &meta.camera_rays(cam),
+                    &meta.sampling,
+                    &|s| field.colour(s),
+                    8192,
+                )?;
+                (img.rgb, surface.surface_depth(cfg.min_opacity))
+            } else {
+                let i = path_views[k];
+                let depth = views
+                    .depth(i)
+                    .iter()
+                    .zip(views.opacity(i))
+                    .map(|(&d, &o)| if o >= cfg.min_opacity { d } else { 0.0 })
+                    .collect();
+                (views.rgb(i).to_vec(), depth)
+            };
+            let photoreal = hwc_to_tensor(&rgb, width, height, device)?.squeeze(0)?;
+            Ok((photoreal, depth, surface))
+        },
+        |done| {
+            control.report(&Progress {
+                stage: "render_stylized".into(),
+                step: 0,
+                total: 0,
+                metrics: [("frames_prepared".to_string(), done as f64)].into(),
+                ..Default::default()
+            })
+        },
+    )?;
+    let mut out = PathFrames {
+        cameras,
+        photoreal: Vec::new(),
+        depths: Vec::new(),
+        surfaces: Vec::new(),
+        width,
+        height,
+    };
+    for (photoreal, depth, surface) in frames {
+        out.photoreal.push(photoreal);
         out.depths.push(depth);
         out.surfaces.push(surface);
-        out.cameras.push(cam);
-        control.report(&Progress {
-            stage: "render_stylized".into(),
-            step: 0,
-            total: 0,
-            metrics: [("frames_prepared".to_string(), (k + 1) as f64)].into(),
-            ..Default::default()
-        });
     }
     Ok(out)
 }
@@ -458,10 +468,13 @@ pub fn run(
     let views = crop_views(inputs.views)?;
     let path = path_frames((&field, &meta), &views, inputs.path, cfg, control, device)?;
     let relu4_1 = |frames: &[Tensor]| -> Result<Vec<Tensor>> {
-        frames
-            .iter()
-            .map(|f| Ok(encoder.relu4_1(&f.unsqueeze(0)?)?))
-            .collect()
+        per_view(
+            frames.len(),
+            device,
+            None,
+            |k| Ok(encoder.relu4_1(&frames[k].unsqueeze(0)?)?),
+            |_| {},
+        )
     };
     let features = relu4_1(&path.photoreal)?;
     let warp_cfg = WarpConfig {
@@ -479,11 +492,13 @@ pub fn run(
         false => None,
     };
     let pose_surfaces = match &poses {
-        Some(p) => p
-            .cameras
-            .iter()
-            .map(|c| SurfaceSamples::for_camera(&field, &meta, c))
-            .collect::<Result<Vec<_>>>()?,
+        Some(p) => per_view(
+            p.cameras.len(),
+            device,
+            Some(control),
+            |k| SurfaceSamples::for_camera(&field, &meta, &p.cameras[k]),
+            |_| {},
+        )?,
         None => Vec::new(),
     };
     let pose_features = match &poses {
@@ -513,36 +528,42 @@ pub fn run(
         let dir = out.join(&folder);
         let latent = latents.blend(&blend.weights)?;
         let target = blend.style_target(&targets)?;
-        let mut stylized = Vec::with_capacity(path.cameras.len());
-        for (k, surface) in path.surfaces.iter().enumerate() {
-            if control.is_cancelled() {
-                return Err(EngineError::Cancelled);
-            }
-            let frame = stylize(surface, &latent)?;
-            save_frame(
-                &dir.join("frames").join(format!("frame_{k:04}.png")),
-                &frame,
-            )?;
-            stylized.push(frame);
-            control.report(&Progress {
-                stage: "render_stylized".into(),
-                step: (si * path.cameras.len() + k + 1) as u64,
-                total,
-                ..Default::default()
-            });
-        }
+        let stylized = per_view(
+            path.surfaces.len(),
+            device,
+            Some(control),
+            |k| {
+                let frame = stylize(&path.surfaces[k], &latent)?;
+                save_frame(
+                    &dir.join("frames").join(format!("frame_{k:04}.png")),
+                    &frame,
+                )?;
+                Ok(frame)
+            },
+            |done| {
+                control.report(&Progress {
+                    stage: "render_stylized".into(),
+                    step: (si * path.cameras.len() + done) as u64,
+                    total,
+                    ..Default::default()
+                })
+            },
+        )?;
         let (animations, animation_note) = write_animation(&dir, &stylized, cfg.frame_ms)?;
         let decode = |decoder: &Decoder, features: &[Tensor]| -> Result<Vec<Tensor>> {
-            features
-                .iter()
-                .map(|f| {
+            per_view(
+                features.len(),
+                device,
+                None,
+                |k| {
                     Ok(decoder
-                        .forward(&adain(f, &target.stats[3], 1.0)?)?
+                        .forward(&adain(&features[k], &target.stats[3], 1.0)?)?
                         .detach()
                         .squeeze(0)?
                         .clamp(0f32, 1f32)?)
-                })
-                .collect()
+                },
+                |_| {},
+            )
         };
         let adain_frames = decode(&baseline, &features)?;
         let main_style = blend
@@ -588,10 +609,13 @@ pub fn run(
         }
         let mut at_poses = Vec::new();
         if let Some(poses) = &poses {
-            let stylized = pose_surfaces
-                .iter()
-                .map(|surface| stylize(surface, &latent))
-                .collect::<Result<Vec<_>>>()?;
+            let stylized = per_view(
+                pose_surfaces.len(),
+                device,
+                None,
+                |k| stylize(&pose_surfaces[k], &latent),
+                |_| {},
+            )?;
             for (method, frames) in [
                 ("NeRF -> AdaIN", decode(&baseline, &pose_features)?),
                 (

@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::depth_error::DepthErrors;
 use crate::field::saved;
+use crate::per_view::per_view;
 use crate::render::render_image;
 use crate::stages::camera_paths::interpolated_path;
 use crate::stages::{Outcome, Progress, StageControl};
@@ -99,36 +100,44 @@ pub fn run(
     };
     let truth = saved::load_train_depth(field_dir, meta.train_cameras.len(), width, height)?;
     let total = views.len() as u64;
-    for (i, view) in views.into_iter().enumerate() {
-        if control.is_cancelled() {
-            return Err(EngineError::Cancelled);
-        }
-        // Views of another size than the first would not stack; scale their intrinsics.
-        let mut camera = view.camera;
+    // Views of another size than the first would not stack; scale their intrinsics.
+    for view in &mut views {
+        let camera = &mut view.camera;
         if (camera.intrinsics.width, camera.intrinsics.height) != (width, height) {
             camera.intrinsics = camera
                 .intrinsics
                 .scaled(width as f32 / camera.intrinsics.width as f32);
             camera.intrinsics.height = height;
         }
-        let img = render_image(
-            &field,
-            &meta.camera_rays(&camera),
-            &meta.sampling,
-            &|s| field.colour(s),
-            cfg.chunk,
-        )?;
+    }
+    let images = per_view(
+        views.len(),
+        device,
+        Some(control),
+        |i| {
+            render_image(
+                &field,
+                &meta.camera_rays(&views[i].camera),
+                &meta.sampling,
+                &|s| field.colour(s),
+                cfg.chunk,
+            )
+        },
+        |done| {
+            control.report(&Progress {
+                stage: "render_views".into(),
+                step: done as u64,
+                total,
+                ..Default::default()
+            })
+        },
+    )?;
+    for img in images {
         rendered.rgb.extend(img.rgb);
         rendered.depth.extend(img.depth);
         rendered.opacity.extend(img.opacity);
-        rendered.views.push(ViewInfo { camera, ..view });
-        control.report(&Progress {
-            stage: "render_views".into(),
-            step: i as u64 + 1,
-            total,
-            ..Default::default()
-        });
     }
+    rendered.views = views;
     rendered.true_depth = truth.map(|truth| carry_true_depth(&rendered, &truth));
     // The depth every later stage warps with, graded where the dataset has the truth.
     let depth_errors = rendered.true_depth.as_ref().and_then(|truth| {
