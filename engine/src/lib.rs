@@ -47,7 +47,7 @@ mod stylized;
 mod warp;
 
 pub use error::{EngineError, Result};
-pub use malloc::{keep_freed_memory, release_free_memory};
+pub use malloc::{keep_freed_memory, one_arena_for_all_threads, release_free_memory};
 pub use optim::LrSchedule;
 pub use rng::Rng;
 /// The catalogue's stages and presets, which every stage configuration is built from.

@@ -10,10 +10,13 @@
 //! being trimmed; [`release_free_memory`] hands it back when a long-lived process (the
 //! worker) finishes a task.
 //!
-//! All threads share that one heap. By default glibc gives other threads arenas of their own,
-//! made of 64 MiB heaps that it unmaps as soon as their memory is free, so tensors allocated
-//! off the main thread (the views a stage renders two at a time) paid the same page faults
-//! again: rendering fox's views spent 33 s in the kernel instead of 3.
+//!
+//! A process that runs stages also keeps every thread on that one heap
+//! ([`one_arena_for_all_threads`]). By default glibc gives other threads arenas of their own,
+//! made of 64 MiB heaps, and tensors allocated off the main thread (the views a stage renders
+//! two at a time) paid the page faults again: rendering fox's views spent 33 s in the kernel
+//! instead of 3. A coordinator keeps glibc's per-thread arenas: its many request threads
+//! allocate small buffers all the time, and one shared arena halved its GetJob throughput.
 
 /// Largest request served from the heap (glibc's maximum for this setting).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
@@ -34,6 +37,18 @@ pub fn keep_freed_memory() {
         libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD);
         libc::mallopt(libc::M_TRIM_THRESHOLD, libc::c_int::MAX);
         libc::mallopt(libc::M_TOP_PAD, 256 << 20);
+    }
+}
+
+/// Every thread allocates from the main heap (after [`keep_freed_memory`]). Call once, early
+/// in `main`, in processes that run stages. Does nothing when [`SWITCH_ENV`] is `off`.
+pub fn one_arena_for_all_threads() {
+    if std::env::var(SWITCH_ENV).is_ok_and(|v| v == "off") {
+        return;
+    }
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: as in `keep_freed_memory`.
+    unsafe {
         libc::mallopt(libc::M_ARENA_MAX, 1);
     }
 }

@@ -106,6 +106,30 @@ pub enum BenchCommand {
     Uploads(bench_uploads::BenchUploadsArgs),
 }
 
+impl Command {
+    /// Whether this command trains or renders in this process (and so wants every thread on
+    /// one allocator arena; see `stylenerf_engine::one_arena_for_all_threads`). A coordinator
+    /// on its own (`coordinator`, `up`, its benchmarks) and the client commands do not.
+    pub fn runs_stages(&self) -> bool {
+        match self {
+            Command::Demo(_)
+            | Command::Scene(_)
+            | Command::Nerf(_)
+            | Command::Stylize(_)
+            | Command::Run(_)
+            | Command::Eval(_)
+            | Command::Worker(_) => true,
+            Command::Bench(b) => matches!(b, BenchCommand::Nerf(_) | BenchCommand::Vgg(_)),
+            Command::Up(_)
+            | Command::Weights(_)
+            | Command::Coordinator(_)
+            | Command::Client(_)
+            | Command::Completions { .. }
+            | Command::Health(_) => false,
+        }
+    }
+}
+
 /// `demo` draws progress bars on stderr: unless a log level was asked for, keep the embedded
 /// coordinator's and worker's info logs from interleaving with them.
 pub fn quiet_default_logs(cli: &mut Cli) {

@@ -18,11 +18,13 @@ struct Cli {
     log_format: LogFormat,
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
+fn main() -> anyhow::Result<()> {
+    // Before any other thread exists: the allocator's arenas are chosen per thread.
     stylenerf_engine::keep_freed_memory();
+    stylenerf_engine::one_arena_for_all_threads();
     let cli = Cli::parse();
     logging::init(&cli.log, cli.log_format);
-    stylenerf_worker::run_until_signal(cli.worker.into_config()).await?;
+    tokio::runtime::Runtime::new()?
+        .block_on(stylenerf_worker::run_until_signal(cli.worker.into_config()))?;
     Ok(())
 }
