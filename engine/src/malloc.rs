@@ -10,13 +10,13 @@
 //! being trimmed; [`release_free_memory`] hands it back when a long-lived process (the
 //! worker) finishes a task.
 //!
-//!
 //! A process that runs stages also keeps every thread on that one heap
 //! ([`one_arena_for_all_threads`]). By default glibc gives other threads arenas of their own,
 //! made of 64 MiB heaps, and tensors allocated off the main thread (the views a stage renders
 //! two at a time) paid the page faults again: rendering fox's views spent 33 s in the kernel
 //! instead of 3. A coordinator keeps glibc's per-thread arenas: its many request threads
-//! allocate small buffers all the time, and one shared arena halved its GetJob throughput.
+//! allocate small buffers all the time, and one shared arena cut its GetJob throughput by a
+//! quarter to a half.
 
 /// Largest request served from the heap (glibc's maximum for this setting).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
