@@ -22,6 +22,17 @@ pub struct Progress {
     pub resumed_from: u64,
 }
 
+impl Progress {
+    /// A report before a stage's first step: `done` of its inputs prepared, as `metric`.
+    pub fn preparing(stage: &str, metric: &str, done: usize) -> Self {
+        Self {
+            stage: stage.into(),
+            metrics: [(metric.to_string(), done as f64)].into(),
+            ..Default::default()
+        }
+    }
+}
+
 type Sink = Arc<dyn Fn(&Progress) + Send + Sync>;
 
 /// Progress sink, cancellation flag and checkpoint policy handed to every stage.

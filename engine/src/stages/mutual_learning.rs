@@ -238,13 +238,11 @@ impl TrainingViews {
                 Ok((surface, encoder.relu4_1(&x)?.detach()))
             },
             |done| {
-                control.report(&Progress {
-                    stage: "mutual_learning".into(),
-                    step: 0,
-                    total: 0,
-                    metrics: [("views_prepared".to_string(), done as f64)].into(),
-                    ..Default::default()
-                })
+                control.report(&Progress::preparing(
+                    "mutual_learning",
+                    "views_prepared",
+                    done,
+                ))
             },
         )?;
         let (surfaces, features) = prepared.into_iter().unzip();

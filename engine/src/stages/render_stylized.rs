@@ -373,13 +373,11 @@ fn path_frames(
             Ok((photoreal, depth, surface))
         },
         |done| {
-            control.report(&Progress {
-                stage: "render_stylized".into(),
-                step: 0,
-                total: 0,
-                metrics: [("frames_prepared".to_string(), done as f64)].into(),
-                ..Default::default()
-            })
+            control.report(&Progress::preparing(
+                "render_stylized",
+                "frames_prepared",
+                done,
+            ))
         },
     )?;
     let mut out = PathFrames {
