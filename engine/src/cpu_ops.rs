@@ -26,9 +26,18 @@ fn fits(len: usize, rows: usize, cols: usize, rs: isize, cs: isize) -> bool {
         || (rs >= 0 && cs >= 0 && ((rows - 1) * rs as usize + (cols - 1) * cs as usize) < len)
 }
 
+/// Which threads a product may use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Threads {
+    /// The rayon pool, when the product is large enough to pay for it.
+    Pool,
+    /// The calling thread alone: the caller is one task of a job already split over the pool.
+    One,
+}
+
 /// dst[m, n] = (accumulate ? dst : 0) + a[m, k] · b[k, n]; `dst` is row-major with row
-/// stride `dst.1` (≥ n), so a product can fill a band of a wider matrix. gemm runs on the
-/// rayon pool when the product is large enough to pay for it.
+/// stride `dst.1` (≥ n), so a product can fill a band of a wider matrix.
+#[allow(clippy::too_many_arguments)]
 pub fn matmul<T: WithDType>(
     m: usize,
     n: usize,
@@ -37,6 +46,7 @@ pub fn matmul<T: WithDType>(
     a: Mat<T>,
     b: Mat<T>,
     accumulate: bool,
+    threads: Threads,
 ) {
     let (dst, dst_rs) = dst;
     assert!(
@@ -46,7 +56,7 @@ pub fn matmul<T: WithDType>(
             && fits(b.0.len(), k, n, b.1, b.2),
         "matmul: operands too small for {m}×{k} · {k}×{n}"
     );
-    let parallelism = if m * n * k > 1 << 16 {
+    let parallelism = if threads == Threads::Pool && m * n * k > 1 << 16 {
         gemm::Parallelism::Rayon(rayon::current_num_threads())
     } else {
         gemm::Parallelism::None

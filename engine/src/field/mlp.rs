@@ -4,8 +4,10 @@
 //! On CPU the whole network is one fused candle op: forward and backward call `gemm` directly
 //! and fuse bias and ReLU, instead of a dozen graph nodes per layer whose gradients candle
 //! accumulates with extra zero-fill and add passes (measured 5–10× slower for the field's
-//! 64-wide layers on 100k samples). Other devices, and the gradient test's reference, use the
-//! composed form built from `narrow`/`matmul`/`relu`.
+//! 64-wide layers on 100k samples). Both run the network on blocks of rows, one block per
+//! task, so activations stay in cache from layer to layer (docs/BENCHMARKS.md, "The fused MLP
+//! in blocks of rows"). Other devices, and the gradient test's reference, use the composed
+//! form built from `narrow`/`matmul`/`relu`.
 //!
 //! Parameter layout, layer after layer: weight [in, out] row-major, then bias [out].
 
@@ -13,7 +15,9 @@ use candle_core::{
     CpuStorage, CustomOp2, CustomOp3, DType, Device, Layout, Shape, Tensor, Var, WithDType,
 };
 
-use crate::cpu_ops::{contiguous_slice, matmul};
+use rayon::prelude::*;
+
+use crate::cpu_ops::{contiguous_slice, matmul, Threads};
 use crate::rng::Rng;
 use crate::Result;
 
@@ -90,6 +94,11 @@ pub fn forward_composed(widths: &[usize], x: &Tensor, params: &Tensor) -> Result
     Ok(h)
 }
 
+/// Rows per task of the fused forward and backward. Each task runs the whole network on its
+/// rows with serial products, so a layer's 64-wide activations (256 KiB here) stay in the
+/// core's cache for the next layer instead of streaming N rows through memory per layer.
+const ROWS: usize = 1024;
+
 /// Layer outputs after bias (and ReLU for hidden layers), input first.
 fn activations<T: WithDType>(widths: &[usize], x: &[T], params: &[T]) -> Vec<Vec<T>> {
     let n = x.len() / widths[0];
@@ -111,6 +120,7 @@ fn activations<T: WithDType>(widths: &[usize], x: &[T], params: &[T]) -> Vec<Vec
             (prev, fan_in as isize, 1),
             (weight, fan_out as isize, 1),
             false,
+            Threads::One,
         );
         let hidden = i + 1 < layers;
         for row in out.chunks_exact_mut(fan_out) {
@@ -126,15 +136,54 @@ fn activations<T: WithDType>(widths: &[usize], x: &[T], params: &[T]) -> Vec<Vec
     acts
 }
 
-/// Gradients (input [N·in], then parameters [P]) given the output gradient.
+/// The network's output [N·out]: blocks of [`ROWS`] rows in parallel.
+fn forward<T: WithDType>(widths: &[usize], x: &[T], params: &[T]) -> Vec<T> {
+    let (n_in, n_out) = (widths[0], widths[widths.len() - 1]);
+    let mut out = vec![T::zero(); x.len() / n_in * n_out];
+    out.par_chunks_mut(ROWS * n_out)
+        .zip(x.par_chunks(ROWS * n_in))
+        .for_each(|(out, x)| {
+            if let Some(y) = activations(widths, x, params).pop() {
+                out.copy_from_slice(&y);
+            }
+        });
+    out
+}
+
+/// Gradients (input [N·in], then parameters [P]) given the output gradient: blocks of
+/// [`ROWS`] rows in parallel, their parameter gradients summed in block order (so the result
+/// does not depend on the number of threads).
 fn backward<T: WithDType>(widths: &[usize], x: &[T], params: &[T], grad: &[T]) -> Vec<T> {
+    let (n_in, n_out) = (widths[0], widths[widths.len() - 1]);
+    let mut out = vec![T::zero(); x.len() + param_count(widths)];
+    let (dx, dparams) = out.split_at_mut(x.len());
+    let blocks: Vec<Vec<T>> = dx
+        .par_chunks_mut(ROWS * n_in)
+        .zip(x.par_chunks(ROWS * n_in))
+        .zip(grad.par_chunks(ROWS * n_out))
+        .map(|((dx, x), grad)| block_backward(widths, x, params, grad, dx))
+        .collect();
+    for block in blocks {
+        for (d, v) in dparams.iter_mut().zip(block) {
+            *d += v;
+        }
+    }
+    out
+}
+
+/// One block of rows: writes ∂L/∂x into `dx` and returns the block's ∂L/∂params.
+fn block_backward<T: WithDType>(
+    widths: &[usize],
+    x: &[T],
+    params: &[T],
+    grad: &[T],
+    dx: &mut [T],
+) -> Vec<T> {
     let n = x.len() / widths[0];
     let acts = activations(widths, x, params);
-    let total = param_count(widths);
-    let mut out = vec![T::zero(); n * widths[0] + total];
-    let (dx, dparams) = out.split_at_mut(n * widths[0]);
+    let mut dparams = vec![T::zero(); param_count(widths)];
     let mut g = grad.to_vec();
-    let mut offset = total;
+    let mut offset = dparams.len();
     for l in (0..widths.len() - 1).rev() {
         let (fan_in, fan_out) = (widths[l], widths[l + 1]);
         offset -= fan_in * fan_out + fan_out;
@@ -150,6 +199,7 @@ fn backward<T: WithDType>(widths: &[usize], x: &[T], params: &[T], grad: &[T]) -
             (h, 1, fan_in as isize),
             (&g, fan_out as isize, 1),
             false,
+            Threads::One,
         );
         for row in g.chunks_exact(fan_out) {
             for (d, v) in db.iter_mut().zip(row) {
@@ -158,24 +208,17 @@ fn backward<T: WithDType>(widths: &[usize], x: &[T], params: &[T], grad: &[T]) -
         }
         // g ← (g Wᵀ) ⊙ [h > 0] (the input layer has no ReLU).
         let weight = &params[offset..offset + fan_in * fan_out];
-        let target: &mut [T] = if l == 0 {
-            dx
-        } else {
-            &mut vec![T::zero(); n * fan_in]
-        };
+        let mut next = vec![T::zero(); if l == 0 { 0 } else { n * fan_in }];
         matmul(
             n,
             fan_in,
             fan_out,
-            (target, fan_in),
+            (if l == 0 { &mut *dx } else { &mut next }, fan_in),
             (&g, fan_out as isize, 1),
             (weight, 1, fan_out as isize),
             false,
+            Threads::One,
         );
-        if l == 0 {
-            break;
-        }
-        let mut next = target.to_vec();
         for (v, a) in next.iter_mut().zip(h) {
             if *a <= T::zero() {
                 *v = T::zero();
@@ -183,7 +226,7 @@ fn backward<T: WithDType>(widths: &[usize], x: &[T], params: &[T], grad: &[T]) -
         }
         g = next;
     }
-    out
+    dparams
 }
 
 /// Fused forward: x [N, in] × params [P] → y [N, out].
@@ -214,24 +257,16 @@ impl CustomOp2 for FusedMlp {
         }
         let n = l1.dims()[0];
         let out = match (s1, s2) {
-            (CpuStorage::F32(x), CpuStorage::F32(p)) => CpuStorage::F32(
-                activations(
-                    w,
-                    contiguous_slice(x, l1, "mlp: input")?,
-                    contiguous_slice(p, l2, "mlp: params")?,
-                )
-                .pop()
-                .unwrap_or_default(),
-            ),
-            (CpuStorage::F64(x), CpuStorage::F64(p)) => CpuStorage::F64(
-                activations(
-                    w,
-                    contiguous_slice(x, l1, "mlp: input")?,
-                    contiguous_slice(p, l2, "mlp: params")?,
-                )
-                .pop()
-                .unwrap_or_default(),
-            ),
+            (CpuStorage::F32(x), CpuStorage::F32(p)) => CpuStorage::F32(forward(
+                w,
+                contiguous_slice(x, l1, "mlp: input")?,
+                contiguous_slice(p, l2, "mlp: params")?,
+            )),
+            (CpuStorage::F64(x), CpuStorage::F64(p)) => CpuStorage::F64(forward(
+                w,
+                contiguous_slice(x, l1, "mlp: input")?,
+                contiguous_slice(p, l2, "mlp: params")?,
+            )),
             _ => candle_core::bail!("mlp: input and parameters must both be f32 or f64"),
         };
         Ok((out, Shape::from((n, *w.last().unwrap_or(&0)))))
@@ -366,6 +401,42 @@ mod tests {
                 "param {i}: {numeric} vs {}",
                 analytic[i]
             );
+        }
+    }
+
+    /// Enough rows for several blocks and a partial last one: the fused op's output and both
+    /// gradients equal the composed network's.
+    #[test]
+    fn fused_blocks_match_composed() {
+        let dev = Device::Cpu;
+        let widths = [6, 16, 16, 4];
+        let mlp = Mlp::new("t", &widths, &mut Rng::new(5), DType::F64, &dev).unwrap();
+        let x = Var::randn(0f64, 1.0, (2 * ROWS + 37, 6), &dev).unwrap();
+        let proj = Tensor::randn(0f64, 1.0, (2 * ROWS + 37, 4), &dev).unwrap();
+        let fused = mlp.forward(&x).unwrap();
+        let composed = forward_composed(&widths, &x, mlp.params.as_tensor()).unwrap();
+        let max_diff = |a: &Tensor, b: &Tensor| {
+            (a - b)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap()
+        };
+        assert!(max_diff(&fused, &composed) < 1e-12);
+        let [gf, gc] = [fused, composed].map(|y| {
+            (y.sqr().unwrap() * &proj)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap()
+        });
+        for v in [x.as_tensor(), mlp.params.as_tensor()] {
+            let (a, b) = (gf.get(v).unwrap(), gc.get(v).unwrap());
+            assert!(max_diff(a, b) < 1e-9 * (1.0 + max_diff(b, &b.zeros_like().unwrap())));
         }
     }
 }

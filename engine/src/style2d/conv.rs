@@ -20,7 +20,7 @@
 use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor, WithDType};
 use rayon::prelude::*;
 
-use crate::cpu_ops::{contiguous_slice, matmul};
+use crate::cpu_ops::{contiguous_slice, matmul, Threads};
 
 /// Most values in one band's column matrix (16 MiB in f32).
 const BAND_VALUES: usize = 1 << 22;
@@ -168,6 +168,7 @@ fn forward<T: WithDType>(g: &Geometry, x: &[T], weight: &[T]) -> Vec<T> {
                 (weight, g.rows() as isize, 1),
                 (&col, p as isize, 1),
                 false,
+                Threads::Pool,
             );
         }
     }
@@ -193,6 +194,7 @@ fn input_grad<T: WithDType>(g: &Geometry, grad: &[T], weight: &[T]) -> Vec<T> {
                 (weight, 1, g.rows() as isize),
                 (&gimg[y0 * g.ow()..], g.out_plane() as isize, 1),
                 false,
+                Threads::Pool,
             );
             col2im_add(g, &col, y0, rows, dst);
         }
@@ -221,6 +223,7 @@ fn weight_grad<T: WithDType>(g: &Geometry, x: &[T], grad: &[T]) -> Vec<T> {
                 (&gimg[y0 * g.ow()..], g.out_plane() as isize, 1),
                 (&col, 1, p as isize),
                 b > 0 || y0 > 0,
+                Threads::Pool,
             );
         }
     }
