@@ -132,9 +132,37 @@ impl HashGrid {
 /// Encodes with any table tensor (a `Var` or a detached copy).
 pub fn encode(config: &HashGridConfig, table: &Tensor, points01: &Tensor) -> Result<Tensor> {
     if table.device().is_cpu() {
-        Ok(table.apply_op2(points01, HashEncode { config: *config })?)
+        Ok(table.apply_op2(
+            points01,
+            HashEncode {
+                config: *config,
+                known: None,
+            },
+        )?)
     } else {
         encode_composed(config, table, points01)
+    }
+}
+
+/// [`encode`] at points whose features were already computed from this table without
+/// gradients (`known`, [N · L·F] f32): the same tensor, with the same backward into the table,
+/// without looking the features up again. Other devices encode again.
+pub fn encode_known(
+    config: &HashGridConfig,
+    table: &Tensor,
+    points01: &Tensor,
+    known: Vec<f32>,
+) -> Result<Tensor> {
+    if table.device().is_cpu() && table.dtype() == candle_core::DType::F32 {
+        Ok(table.apply_op2(
+            points01,
+            HashEncode {
+                config: *config,
+                known: Some(known),
+            },
+        )?)
+    } else {
+        encode(config, table, points01)
     }
 }
 
@@ -178,9 +206,11 @@ fn points_slice<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f
     }
 }
 
-/// Fused forward: table [rows, F] × points [N, 3] → features [N, L·F].
+/// Fused forward: table [rows, F] × points [N, 3] → features [N, L·F] (`known`: the features,
+/// already computed).
 struct HashEncode {
     config: HashGridConfig,
+    known: Option<Vec<f32>>,
 }
 
 impl HashEncode {
@@ -223,11 +253,15 @@ impl CustomOp2 for HashEncode {
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let pts = points_slice(s2, l2)?;
         let shape = Shape::from((pts.len() / 3, self.config.output_dim()));
-        let out = match s1 {
-            CpuStorage::F32(t) => {
+        let out = match (s1, &self.known) {
+            (CpuStorage::F32(_), Some(known)) if known.len() == shape.elem_count() => {
+                CpuStorage::F32(known.clone())
+            }
+            (_, Some(_)) => candle_core::bail!("hash-grid: the known features do not match"),
+            (CpuStorage::F32(t), None) => {
                 CpuStorage::F32(self.forward(contiguous_slice(t, l1, "hash-grid: table")?, pts))
             }
-            CpuStorage::F64(t) => {
+            (CpuStorage::F64(t), None) => {
                 CpuStorage::F64(self.forward(contiguous_slice(t, l1, "hash-grid: table")?, pts))
             }
             _ => candle_core::bail!("hash-grid: table must be f32 or f64"),
@@ -406,6 +440,42 @@ mod tests {
             .to_scalar::<f64>()
             .unwrap();
         assert!(diff < 1e-12, "backward differs by {diff}");
+    }
+
+    /// Known features give the tensor and the table gradient that encoding again gives, and
+    /// features that do not match the points are refused.
+    #[test]
+    fn known_features_act_as_the_encoding() {
+        let cfg = small();
+        let table = Var::rand(
+            -1.0f32,
+            1.0,
+            (cfg.levels * cfg.table_size(), 2),
+            &Device::Cpu,
+        )
+        .unwrap();
+        let pts = points(300, 2);
+        let proj = Tensor::rand(-1.0f32, 1.0, (300, cfg.output_dim()), &Device::Cpu).unwrap();
+        let fresh = encode(&cfg, table.as_tensor(), &pts).unwrap();
+        let features: Vec<f32> = fresh.flatten_all().unwrap().to_vec1().unwrap();
+        let known = encode_known(&cfg, table.as_tensor(), &pts, features.clone()).unwrap();
+        assert_eq!(
+            known.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            features
+        );
+        let [g1, g2] = [fresh, known].map(|e| {
+            let grads = (e * &proj).unwrap().sum_all().unwrap().backward().unwrap();
+            grads
+                .get(&table)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+        });
+        assert_eq!(g1, g2);
+        let short = features[..features.len() - 1].to_vec();
+        assert!(encode_known(&cfg, table.as_tensor(), &pts, short).is_err());
     }
 
     #[test]

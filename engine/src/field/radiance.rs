@@ -170,7 +170,12 @@ impl RadianceField {
 
     /// σ and geometry features at normalised points.
     pub fn geometry(&self, points01: &Tensor) -> Result<(Tensor, Tensor)> {
-        let h = self.density_net.forward(&self.grid.encode(points01)?)?;
+        self.geometry_of_encoding(&self.grid.encode(points01)?)
+    }
+
+    /// σ and geometry features from the hash encoding of the points.
+    fn geometry_of_encoding(&self, encoding: &Tensor) -> Result<(Tensor, Tensor)> {
+        let h = self.density_net.forward(encoding)?;
         let raw = (h.narrow(1, 0, 1)?.squeeze(1)? + self.config.density_bias as f64)?;
         let sigma = raw.clamp(-MAX_LOG_SIGMA, MAX_LOG_SIGMA)?.exp()?;
         let geometry = h.narrow(1, 1, self.config.geometry_features)?;
@@ -215,6 +220,21 @@ impl RadianceField {
         Ok(out)
     }
 
+    /// σ at packed field-space positions without gradients, and the hash encoding it was
+    /// computed from ([N · L·F]; for [`RadianceField::encoded_samples`]).
+    pub fn density_and_encoding(&self, positions: &[f32]) -> Result<(Vec<f32>, Vec<f32>)> {
+        let n = positions.len() / 3;
+        let mut sigma = Vec::with_capacity(n);
+        let mut encoding = Vec::with_capacity(n * self.config.grid.output_dim());
+        for chunk in positions.chunks(3 * VALUE_CHUNK) {
+            let e = self.grid.encode(&self.points01(chunk)?)?;
+            let (s, _) = self.geometry_of_encoding(&e)?;
+            sigma.extend(s.detach().to_vec1::<f32>()?);
+            encoding.extend(e.detach().flatten_all()?.to_vec1::<f32>()?);
+        }
+        Ok((sigma, encoding))
+    }
+
     /// Normalised positions, σ and geometry features at packed field-space positions, without
     /// gradients: what a cache of the frozen density keeps.
     fn geometry_values(&self, positions: &[f32]) -> Result<GeometryValues> {
@@ -236,10 +256,24 @@ impl RadianceField {
         Ok(out)
     }
 
-    /// Evaluates the geometry at `samples`, with the view directions of their rays.
-    pub fn samples(&self, samples: &Samples, view_dirs: &[glam::Vec3]) -> Result<FieldSamples> {
+    /// Evaluates the geometry at `samples`, with the view directions of their rays, given the
+    /// samples' hash encoding computed without gradients
+    /// ([`RadianceField::density_and_encoding`]): the values and gradients of encoding them
+    /// again, without looking the encoding up again.
+    pub fn encoded_samples(
+        &self,
+        samples: &Samples,
+        encoding: Vec<f32>,
+        view_dirs: &[glam::Vec3],
+    ) -> Result<FieldSamples> {
         let points01 = self.points01(&samples.positions)?;
-        let (sigma, geometry) = self.geometry(&points01)?;
+        let encoding = hash_grid::encode_known(
+            &self.grid.config,
+            self.grid.table.as_tensor(),
+            &points01,
+            encoding,
+        )?;
+        let (sigma, geometry) = self.geometry_of_encoding(&encoding)?;
         Ok(FieldSamples {
             sigma,
             geometry,
@@ -248,9 +282,9 @@ impl RadianceField {
         })
     }
 
-    /// [`RadianceField::samples`] without gradients and without evaluating the density again:
-    /// the entries of `values` (computed at all the samples `samples` was filtered from) that
-    /// `keep` marks.
+    /// [`RadianceField::encoded_samples`] without gradients and without evaluating the density
+    /// again: the entries of `values` (computed at all the samples `samples` was filtered from)
+    /// that `keep` marks.
     pub fn kept_samples(
         &self,
         values: &GeometryValues,

@@ -77,15 +77,33 @@ pub fn render_rays(
     rng: Option<&mut Rng>,
 ) -> Result<RenderOutput> {
     let marched = march_field(field, rays, cfg, rng);
-    // Cheap gradient-free density passes, front to back, find where each ray becomes opaque.
+    // Cheap gradient-free density passes, front to back, find where each ray becomes opaque;
+    // they keep the hash encoding of what they evaluate, which the gradient pass reuses.
+    let width = field.config.grid.output_dim();
+    let (mut row, mut encodings) = (vec![0usize; marched.ray.len()], Vec::new());
     let (keep, _) = marched.front_to_back(cfg.early_stop_eps, |idx| {
-        field.density_values(&marched.positions_of(idx))
+        let (sigma, encoding) = field.density_and_encoding(&marched.positions_of(idx))?;
+        for (j, &k) in idx.iter().enumerate() {
+            row[k] = encodings.len() / width + j;
+        }
+        encodings.extend(encoding);
+        Ok(sigma)
     })?;
     let samples = marched.filter(&keep);
     let evaluated = if samples.ray.is_empty() {
         None
     } else {
-        Some(field.samples(&samples, &rays.view_dirs)?)
+        // Every kept sample was evaluated (a ray keeps only samples in front of its opaque
+        // point, and those are evaluated first).
+        let kept: Vec<f32> = (0..keep.len())
+            .filter(|&k| keep[k])
+            .flat_map(|k| {
+                encodings[row[k] * width..(row[k] + 1) * width]
+                    .iter()
+                    .copied()
+            })
+            .collect();
+        Some(field.encoded_samples(&samples, kept, &rays.view_dirs)?)
     };
     finish(field, rays, &samples, evaluated, colour)
 }
