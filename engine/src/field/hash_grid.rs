@@ -131,17 +131,7 @@ impl HashGrid {
 
 /// Encodes with any table tensor (a `Var` or a detached copy).
 pub fn encode(config: &HashGridConfig, table: &Tensor, points01: &Tensor) -> Result<Tensor> {
-    if table.device().is_cpu() {
-        Ok(table.apply_op2(
-            points01,
-            HashEncode {
-                config: *config,
-                known: None,
-            },
-        )?)
-    } else {
-        encode_composed(config, table, points01)
-    }
+    encode_with(config, table, points01, None)
 }
 
 /// [`encode`] at points whose features were already computed from this table without
@@ -153,17 +143,28 @@ pub fn encode_known(
     points01: &Tensor,
     known: Vec<f32>,
 ) -> Result<Tensor> {
-    if table.device().is_cpu() && table.dtype() == candle_core::DType::F32 {
-        Ok(table.apply_op2(
-            points01,
-            HashEncode {
-                config: *config,
-                known: Some(known),
-            },
-        )?)
-    } else {
-        encode(config, table, points01)
+    encode_with(config, table, points01, Some(known))
+}
+
+/// The fused op on CPU (with `known` features only for an f32 table), the composed encoding
+/// elsewhere.
+fn encode_with(
+    config: &HashGridConfig,
+    table: &Tensor,
+    points01: &Tensor,
+    known: Option<Vec<f32>>,
+) -> Result<Tensor> {
+    if !table.device().is_cpu() {
+        return encode_composed(config, table, points01);
     }
+    let known = known.filter(|_| table.dtype() == candle_core::DType::F32);
+    Ok(table.apply_op2(
+        points01,
+        HashEncode {
+            config: *config,
+            known,
+        },
+    )?)
 }
 
 /// Device-agnostic encoding from candle ops (the reference for the fused op).
