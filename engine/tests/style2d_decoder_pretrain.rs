@@ -1,6 +1,7 @@
 //! A tiny `decoder_pretrain` run on views of the generated scene (ground-truth depth as the
-//! rendered depth): outputs exist and are sane, and a run interrupted and resumed from its
-//! checkpoint ends with exactly the weights of an uninterrupted run.
+//! rendered depth): outputs exist and are sane, a run interrupted and resumed from its
+//! checkpoint ends with exactly the weights of an uninterrupted run, and each decoder's
+//! palette gives its output on the views the painting's mean colour.
 
 use std::path::Path;
 
@@ -9,10 +10,14 @@ use image::Rgb32FImage;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::decoder_pretrain::{
-    run, DecoderPretrainConfig, DecoderStart, Inputs, StyleImage, StylesFile,
+    run, DecoderPretrainConfig, DecoderStart, Inputs, StyleImage, StyleLatent, StylesFile,
 };
 use stylenerf_engine::stages::{Outcome, StageControl};
-use stylenerf_engine::style2d::decoder::BUNDLED_DECODER_NAME;
+use stylenerf_engine::style2d::decoder::{Decoder, BUNDLED_DECODER_NAME};
+use stylenerf_engine::style2d::encoder::VggEncoder;
+use stylenerf_engine::style2d::images::{hwc_to_tensor, tensor_to_hwc, to_tensor};
+use stylenerf_engine::style2d::network::AdaInNet;
+use stylenerf_engine::style2d::palette::Palette;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::{RenderedViews, ViewInfo, ViewKind};
 use stylenerf_engine::Preset;
@@ -151,6 +156,95 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
             read(&full, f),
             read(&resumed, f),
             "{f} differs after resuming"
+        );
+    }
+}
+
+#[test]
+fn each_teachers_palette_gives_its_output_the_paintings_colours() {
+    let tmp = tempfile::tempdir().unwrap();
+    let views = views(&tmp.path().join("scene"));
+    let enc = EncoderWeights::bundled().unwrap();
+    let styles = styles();
+    let inputs = Inputs {
+        views: &views,
+        styles: &styles,
+        encoder: &enc,
+        init_decoder: None,
+    };
+    let dev = Device::Cpu;
+    let cfg = DecoderPretrainConfig {
+        steps: 2,
+        vae_steps: 2,
+        ..DecoderPretrainConfig::preset(Preset::Tiny)
+    };
+    assert!(cfg.palette && cfg.eval_stride == 1, "every view is fitted");
+    let read_styles = |out: &Path| -> StylesFile {
+        serde_json::from_slice(&std::fs::read(out.join("styles.json")).unwrap()).unwrap()
+    };
+    let out = tmp.path().join("on");
+    run(inputs, &cfg, &out, &StageControl::default(), &dev).unwrap();
+    let file = read_styles(&out);
+    let encoder = VggEncoder::new(&enc, &dev).unwrap();
+    let mean = |rgb: &[Vec<f32>]| {
+        let n = rgb.iter().map(|x| x.len() / 3).sum::<usize>() as f32;
+        let mut m = [0.0f32; 3];
+        for p in rgb.iter().flat_map(|x| x.chunks_exact(3)) {
+            (0..3).for_each(|c| m[c] += p[c] / n);
+        }
+        m
+    };
+    for (decoder_file, palette_of) in [
+        (
+            "decoder.safetensors",
+            (|s: &StyleLatent| s.palette) as fn(&StyleLatent) -> Palette,
+        ),
+        ("adain_decoder.safetensors", |s: &StyleLatent| {
+            s.adain_palette
+        }),
+    ] {
+        let net = AdaInNet {
+            encoder: encoder.clone(),
+            decoder: Decoder::load(&out.join(decoder_file), &dev).unwrap().0,
+        };
+        for (style, latent) in styles.iter().zip(&file.styles) {
+            let painting = to_tensor(&style.image, cfg.style_size, &dev).unwrap();
+            let target = net.style_target(&painting).unwrap();
+            let palette = palette_of(latent);
+            assert_ne!(palette, Palette::IDENTITY, "{decoder_file} {}", style.name);
+            // The teacher's output on every view, as seen, through the palette.
+            let mapped: Vec<Vec<f32>> = (0..views.len())
+                .map(|i| {
+                    let x = hwc_to_tensor(views.rgb(i), 32, 32, &dev).unwrap();
+                    let mut rgb = tensor_to_hwc(&net.stylize(&x, &target, 1.0).unwrap())
+                        .unwrap()
+                        .2;
+                    palette.apply_rgb(&mut rgb);
+                    rgb
+                })
+                .collect();
+            let (got, want) = (mean(&mapped), mean(&[tensor_to_hwc(&painting).unwrap().2]));
+            for c in 0..3 {
+                assert!(
+                    (got[c] - want[c]).abs() < 1e-3,
+                    "{decoder_file} {}: {got:?} vs {want:?}",
+                    style.name
+                );
+            }
+        }
+    }
+
+    // Off: the decoders keep their own colours.
+    let off = tmp.path().join("off");
+    let cfg_off = DecoderPretrainConfig {
+        palette: false,
+        ..cfg
+    };
+    run(inputs, &cfg_off, &off, &StageControl::default(), &dev).unwrap();
+    for s in read_styles(&off).styles {
+        assert_eq!(
+            (s.palette, s.adain_palette),
+            (Palette::IDENTITY, Palette::IDENTITY)
         );
     }
 }

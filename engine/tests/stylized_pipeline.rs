@@ -1,6 +1,7 @@
 //! The stylized half end to end on a tiny generated scene: all five stages run; in mutual
 //! learning L_mimic falls and the decoder's weights change once it is unfrozen; an
 //! interrupted mutual-learning run resumes to exactly the uninterrupted result; the stylized
+//! NeRF's palette is fitted after training and applied to its frames; the stylized
 //! render writes frames, animation, contact sheet and an evaluation of three methods, for single
 //! styles and a blend.
 
@@ -12,7 +13,7 @@ use stylenerf_engine::camera::Camera;
 use stylenerf_engine::scene::generate::{generate, GenerateOptions};
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_engine::stages::decoder_pretrain::{self, DecoderPretrainConfig};
-use stylenerf_engine::stages::mutual_learning::{self, MutualConfig, MutualReport};
+use stylenerf_engine::stages::mutual_learning::{self, LatentsFile, MutualConfig, MutualReport};
 use stylenerf_engine::stages::nerf_pretrain::{self, NerfConfig};
 use stylenerf_engine::stages::pose_consistency::PoseFrames;
 use stylenerf_engine::stages::render_stylized::{self, RenderStylizedConfig, RenderStylizedReport};
@@ -20,6 +21,7 @@ use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
 use stylenerf_engine::stages::{Outcome, StageControl};
 use stylenerf_engine::style2d::images::{hwc_to_tensor, StyleImage};
 use stylenerf_engine::style2d::painted;
+use stylenerf_engine::style2d::palette::Palette;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::RenderedViews;
 use stylenerf_engine::Preset;
@@ -108,6 +110,82 @@ fn mutual_config() -> MutualConfig {
     MutualConfig {
         steps: 40,
         ..MutualConfig::preset(Preset::Tiny)
+    }
+}
+
+#[test]
+fn the_stylized_nerfs_palette_is_fitted_after_training_and_applied_to_its_frames() {
+    let u = upstream();
+    let cfg = MutualConfig {
+        steps: 8,
+        ..mutual_config()
+    };
+    let (on, off) = (
+        u.root.join("mutual-palette-on"),
+        u.root.join("mutual-palette-off"),
+    );
+    done(mutual(&on, &cfg, &StageControl::default()));
+    done(mutual(
+        &off,
+        &MutualConfig {
+            palette: false,
+            ..cfg
+        },
+        &StageControl::default(),
+    ));
+    let palettes = |dir: &Path| -> Vec<Palette> {
+        let file: LatentsFile =
+            serde_json::from_slice(&std::fs::read(dir.join("latents.json")).unwrap()).unwrap();
+        file.palettes
+    };
+    let (fitted, identity) = (palettes(&on), palettes(&off));
+    assert_eq!(fitted.len(), u.styles.len());
+    assert!(fitted.iter().all(|p| *p != Palette::IDENTITY));
+    assert!(identity.iter().all(|p| *p == Palette::IDENTITY));
+    // Fitted after training: the field's style module is the same either way.
+    let read = |dir: &Path, f: &str| std::fs::read(dir.join(f)).unwrap();
+    assert_eq!(
+        read(&on, "style_module.safetensors"),
+        read(&off, "style_module.safetensors")
+    );
+
+    // render_stylized paints the NeRF's frames through the palette: the frames of the
+    // palette-off run, mapped, are the palette-on run's (up to 8-bit rounding), and closer to
+    // the painting's mean colour.
+    let cfg = RenderStylizedConfig {
+        styles: vec!["mosaic".into()],
+        eval: false,
+        ..RenderStylizedConfig::preset(Preset::Tiny)
+    };
+    let frames = |dir: &Path| -> Vec<Vec<f32>> {
+        let out = dir.join("rendered");
+        render(dir, None, &cfg, &out);
+        (0..u.views.path_indices().len())
+            .map(|k| {
+                let f = out.join(format!("mosaic/frames/frame_{k:04}.png"));
+                let img = image::open(f).unwrap().to_rgb32f();
+                img.into_raw()
+            })
+            .collect()
+    };
+    let (mapped, plain) = (frames(&on), frames(&off));
+    let mean = |images: &[Vec<f32>]| -> [f32; 3] {
+        let n = images.iter().map(|i| i.len() / 3).sum::<usize>() as f32;
+        let mut m = [0.0; 3];
+        for p in images.iter().flat_map(|i| i.chunks_exact(3)) {
+            (0..3).for_each(|c| m[c] += p[c] / n);
+        }
+        m
+    };
+    let distance = |a: [f32; 3], b: [f32; 3]| (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
+    let painting = mean(&[u.styles[0].image.clone().into_raw()]);
+    assert!(distance(mean(&mapped), painting) < distance(mean(&plain), painting));
+    for (m, p) in mapped.iter().zip(&plain) {
+        let mut expected = p.clone();
+        fitted[0].apply_rgb(&mut expected);
+        for (a, b) in m.iter().zip(&expected) {
+            assert!((a - b.clamp(0.0, 1.0)).abs() < 4.0 / 255.0, "{a} vs {b}");
+        }
     }
 }
 

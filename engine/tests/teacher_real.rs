@@ -2,9 +2,10 @@
 //! need, and a decoder trained by `stylize train-decoder`, named by `STYLENERF_TEACHER`): the
 //! fox test frames (every 8th) stylized feed-forward by the bundled encoder and that decoder
 //! with each painting of `../shared/styles`, scored outside the encoder (Lab colour SWD, Gabor
-//! texture distance) against the unstylized frames' floor. docs/BENCHMARKS.md records which
-//! paintings the graded decoder's corpus held. A labelled sheet is written to
-//! `target/teacher_real/sheet.png`.
+//! texture distance) against the unstylized frames' floor, with the decoder's own colours and
+//! through the palette fitted to its output on these frames (as a job's `decoder_pretrain`
+//! fits it on its views). docs/BENCHMARKS.md records which paintings the graded decoder's
+//! corpus held. A labelled sheet is written to `target/teacher_real/sheet.png`.
 //!
 //! `STYLENERF_TEACHER=dec/decoder.safetensors cargo test --release -p stylenerf-engine \
 //!     --test teacher_real -- --ignored --nocapture`
@@ -17,6 +18,7 @@ use stylenerf_engine::style2d::decoder::Decoder;
 use stylenerf_engine::style2d::encoder::VggEncoder;
 use stylenerf_engine::style2d::images::{tensor_to_hwc, to_tensor};
 use stylenerf_engine::style2d::network::AdaInNet;
+use stylenerf_engine::style2d::palette::{ColourMoments, Palette};
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::style_metrics::StyleReference;
 
@@ -56,7 +58,9 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
     files.sort();
     let (inputs, frames): (Vec<_>, Vec<_>) = files.iter().step_by(8).map(|p| load(p, &dev)).unzip();
     let mut rows = Vec::new();
-    println!("| painting | colour SWD photo → teacher (ratio) | texture photo → teacher |");
+    println!(
+        "| painting | colour SWD photo → teacher (ratio) → with palette (ratio) | texture photo → teacher → with palette |"
+    );
     println!("|---|---|---|");
     for name in [
         "starry_night",
@@ -71,17 +75,39 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
             .iter()
             .map(|x| raw(&net.stylize(x, &target, 1.0).unwrap()))
             .collect();
+        let outputs: Vec<&[f32]> = stylized.iter().map(|s| s.2.as_slice()).collect();
+        let palette = Palette::transport(
+            &ColourMoments::of(&outputs).unwrap(),
+            &ColourMoments::of(&[&style]).unwrap(),
+        );
+        let mapped: Vec<_> = stylized
+            .iter()
+            .map(|(w, h, rgb)| {
+                let mut rgb = rgb.clone();
+                palette.apply_rgb(&mut rgb);
+                rgb.iter_mut().for_each(|v| *v = v.clamp(0.0, 1.0));
+                (*w, *h, rgb)
+            })
+            .collect();
         let floor = reference.score(&view(&frames));
         let teacher = reference.score(&view(&stylized));
+        let with_palette = reference.score(&view(&mapped));
         println!(
-            "| {name} | {:.2} → {:.2} ({:.2}×) | {:.3} → {:.3} |",
+            "| {name} | {:.2} → {:.2} ({:.2}×) → {:.2} ({:.2}×) | {:.3} → {:.3} → {:.3} |",
             floor.0,
             teacher.0,
             teacher.0 / floor.0,
+            with_palette.0,
+            with_palette.0 / floor.0,
             floor.1,
-            teacher.1
+            teacher.1,
+            with_palette.1
         );
         assert!(teacher.0.is_finite() && teacher.1.is_finite());
+        assert!(
+            with_palette.0 < teacher.0,
+            "{name}: the palette moves the colours closer"
+        );
         let (fw, fh, _) = frames[0];
         let tile = |rgb: &[f32], w: usize, h: usize| {
             let img = to_rgb8(w as u32, h as u32, rgb);
@@ -96,12 +122,16 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
             tile(&style, sw, sh),
             tile(&frames[1].2, fw, fh),
             tile(&stylized[1].2, fw, fh),
+            tile(&mapped[1].2, fw, fh),
             tile(&frames[3].2, fw, fh),
             tile(&stylized[3].2, fw, fh),
+            tile(&mapped[3].2, fw, fh),
         ]);
     }
     let sheet = stylenerf_engine::sheet::labelled_grid(
-        &["style", "photo", "teacher", "photo", "teacher"],
+        &[
+            "style", "photo", "teacher", "palette", "photo", "teacher", "palette",
+        ],
         &rows,
     )
     .unwrap();

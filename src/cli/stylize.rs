@@ -14,6 +14,7 @@ use stylenerf_engine::style2d::fit::{fit_pair, FitConfig};
 use stylenerf_engine::style2d::images::{self, StyleImage};
 use stylenerf_engine::style2d::network::AdaInNet;
 use stylenerf_engine::style2d::painted;
+use stylenerf_engine::style2d::palette::Palette;
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::LrSchedule;
 
@@ -24,9 +25,11 @@ pub enum StylizeCommand {
     /// Starts from the general decoder bundled with stylenerf (trained for the bundled encoder;
     /// a fresh one with another --encoder) or from --decoder, and fine-tunes it on this one
     /// content/style pair for --train-steps Adam steps of AdaIN's content and style losses
-    /// (several minutes on a CPU at the default size). With the bundled encoder its colours come
-    /// mostly from this fine-tuning: --train-steps 0 gives the general decoder's feed-forward
-    /// result, with the painting's strokes but not its palette. A decoder trained by
+    /// (several minutes on a CPU at the default size). The output's chroma is then mapped to
+    /// the painting's, its strokes kept (the palette; --no-palette keeps the decoder's
+    /// own colours, which with the bundled encoder come mostly from the fine-tuning):
+    /// --train-steps 0 gives the general decoder's feed-forward strokes in the painting's
+    /// palette. A decoder trained by
     /// `decoder_pretrain` for this style, or AdaIN's decoder.pth with vgg_normalised.pth as
     /// --encoder, needs no fine-tuning.
     Image(ImageArgs),
@@ -126,6 +129,10 @@ pub struct ImageArgs {
     /// Seed of the decoder's initialisation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Keep the decoder's own colours instead of mapping its output's chroma to the painting's
+    /// (the palette, applied with strength --alpha; docs/STYLE2D.md).
+    #[arg(long)]
+    no_palette: bool,
 }
 
 pub fn run(cmd: StylizeCommand) -> anyhow::Result<()> {
@@ -198,7 +205,12 @@ fn image(a: ImageArgs) -> anyhow::Result<()> {
             }
         })?;
     }
-    let out = net.stylize(&content, &target, a.alpha)?;
+    let mut out = net.stylize(&content, &target, a.alpha)?;
+    if !a.no_palette {
+        let palette = Palette::fit(std::slice::from_ref(&out), &style)?;
+        let alpha = a.alpha.clamp(0.0, 1.0) as f32;
+        out = Palette::blend(&[(palette, alpha), (Palette::IDENTITY, 1.0 - alpha)]).apply(&out)?;
+    }
     let (w, h, rgb) = images::tensor_to_hwc(&out)?;
     image_io::save_rgb_png(&a.output, w, h, &rgb)?;
     println!("wrote {} ({w}×{h})", a.output.display());

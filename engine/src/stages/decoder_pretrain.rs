@@ -15,9 +15,17 @@
 //! warps with view i's rendered depth and both cameras (see [`crate::warp`]); pixels whose
 //! rendered opacity is below `min_opacity` have no depth. Views are cropped to multiples of 8.
 //!
+//! At the end, each decoder gets a palette per style ([`Palette`]): the affine colour map that
+//! gives its output on the evaluation views the painting's chroma distribution (mean and
+//! covariance) and mean luma, its strokes kept. The encoder's deep features carry little
+//! colour, so without it the teacher paints the strokes in colours partly its own. One map per style for all views: it moves no view against
+//! another. Every later use of a decoder's output (mutual learning's targets, the evaluation's
+//! NeRF→AdaIN) applies its palette.
+//!
 //! Output folder: `decoder.safetensors`, `adain_decoder.safetensors`, `vae.safetensors`,
-//! `styles.json` (per style: name, μ, σ, plus how the style features were computed),
-//! `sheets/style-<k>.png` (labelled rows of content | style | output), `curves.png` (the loss
+//! `styles.json` (per style: name, μ, σ, both decoders' palettes, plus how the style features
+//! were computed), `sheets/style-<k>.png` (labelled rows of content | style | output with its
+//! palette), `curves.png` (the loss
 //! terms over the steps), `metrics.json` (written last),
 //! and `ckpt/` (decoder + Adam moments + RNG, and the baseline's weights once L_co is on).
 
@@ -34,12 +42,14 @@ use crate::rng::Rng;
 use crate::stages::training::Training;
 use crate::stages::window::Window;
 use crate::stages::{Outcome, StageControl};
+use crate::style2d::adain::adain;
 use crate::style2d::arch::VggArch;
 use crate::style2d::decoder::{Decoder, BUNDLED_DECODER_NAME};
 use crate::style2d::encoder::VggEncoder;
 pub use crate::style2d::images::StyleImage;
 use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc};
 use crate::style2d::network::{AdaInNet, StyleTarget};
+use crate::style2d::palette::Palette;
 use crate::style2d::style_features::{crop_vectors, CropConfig};
 use crate::style2d::vae::{LatentGaussian, StyleVae, VaeConfig};
 use crate::style2d::weights::EncoderWeights;
@@ -91,7 +101,16 @@ pub struct DecoderPretrainConfig {
     /// Random crops per style for the VAE (and for its per-style distribution).
     pub crops_per_style: usize,
     pub crop: CropConfig,
+    /// Fit each decoder's palette for each style ([`Palette`]): the affine colour map that
+    /// gives the decoder's output on the views the painting's chroma and mean luma.
+    /// Off: the decoders' own colours (identity maps).
+    #[serde(default = "default_palette")]
+    pub palette: bool,
     pub seed: u64,
+}
+
+fn default_palette() -> bool {
+    true
 }
 
 /// The warp's relative depth tolerance (a serialisable copy of [`WarpConfig`]).
@@ -123,6 +142,7 @@ impl DecoderPretrainConfig {
             vae_lr: 1e-3,
             crops_per_style: 32,
             crop: CropConfig::default(),
+            palette: true,
             seed: 0,
         };
         match preset {
@@ -173,12 +193,21 @@ pub struct StylesFile {
     pub styles: Vec<StyleLatent>,
 }
 
-/// One style's latent distribution (the moment-matched mixture over its crops).
+/// One style: its latent distribution (the moment-matched mixture over its crops) and the
+/// teachers' palettes for it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StyleLatent {
     pub name: String,
     #[serde(flatten)]
     pub latent: LatentGaussian,
+    /// The colour map applied to `decoder.safetensors`' output for this style (and to that of
+    /// the decoder `mutual_learning` fine-tunes from it): see [`Palette`]. Identity in files
+    /// written before palettes, or with `palette` off.
+    #[serde(default)]
+    pub palette: Palette,
+    /// The same for `adain_decoder.safetensors`.
+    #[serde(default)]
+    pub adain_palette: Palette,
 }
 
 /// Loss values at one step.
@@ -333,7 +362,7 @@ fn pair_losses(
 ) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
     let (_, fi) = cache.content(net, i)?;
     let (_, fj) = cache.content(net, j)?;
-    let t = crate::style2d::adain::adain(&Tensor::cat(&[&fi, &fj], 0)?, &style.stats[3], 1.0)?;
+    let t = adain(&Tensor::cat(&[&fi, &fj], 0)?, &style.stats[3], 1.0)?;
     let stride = VggArch::STRIDE;
     let target = Tensor::cat(
         &[
@@ -553,25 +582,44 @@ pub fn run(
     adain_decoder.load_tensors(&adain_weights, &out.join("ckpt"))?;
     adain_decoder.save(&out.join("adain_decoder.safetensors"), net.encoder.source())?;
 
-    // Evaluation: every `eval_stride`-th view with its nearest neighbour, every style.
+    // Evaluation: every `eval_stride`-th view with its nearest neighbour, every style. Both
+    // decoders' palettes are fitted to their outputs on the same views.
     let (mut co, mut st, mut n) = (0.0, 0.0, 0.0);
+    let mut palettes = Vec::with_capacity(targets.len());
     for (k, target) in targets.iter().enumerate() {
-        let mut rows = Vec::new();
+        let (mut outputs, mut adain_outputs, mut contents) = (Vec::new(), Vec::new(), Vec::new());
         for (i, nb) in pairs.iter().enumerate().step_by(cfg.eval_stride) {
             let full = Window::full(width, height);
             let (_, ls, lco, o) = pair_losses(&net, &mut cache, target, (i, full), (nb[0], full))?;
             co += lco.to_scalar::<f32>()? as f64;
             st += ls.to_scalar::<f32>()? as f64;
             n += 1.0;
-            if rows.len() < 3 {
-                rows.push((cache.content(&net, i)?.0, o.get(0)?));
+            outputs.push(o.get(0)?.detach());
+            let (x, feat) = cache.content(&net, i)?;
+            if cfg.palette {
+                let t = adain(&feat, &target.stats[3], 1.0)?;
+                adain_outputs.push(adain_decoder.forward(&t)?.detach());
+            }
+            if contents.len() < 3 {
+                contents.push(x);
             }
         }
+        let fit = |outputs: &[Tensor]| match cfg.palette {
+            true => Palette::fit(outputs, &style_tensors[k]),
+            false => Ok(Palette::IDENTITY),
+        };
+        let palette = fit(&outputs)?;
+        let rows = contents
+            .into_iter()
+            .zip(&outputs)
+            .map(|(x, o)| Ok((x, palette.apply(&o.unsqueeze(0)?)?.squeeze(0)?)))
+            .collect::<Result<Vec<_>>>()?;
         contact_sheet(
             &out.join("sheets").join(format!("style-{k}.png")),
             &rows,
             &style_tensors[k],
         )?;
+        palettes.push((palette, fit(&adain_outputs)?));
     }
 
     // The style VAE on random crops of every style.
@@ -604,10 +652,13 @@ pub fn run(
         styles: styles
             .iter()
             .zip(&crops)
-            .map(|(s, c)| {
+            .zip(palettes)
+            .map(|((s, c), (palette, adain_palette))| {
                 Ok(StyleLatent {
                     name: s.name.clone(),
                     latent: vae.style_distribution(c)?,
+                    palette,
+                    adain_palette,
                 })
             })
             .collect::<Result<_>>()?,

@@ -4,8 +4,11 @@
 //! - the stylized NeRF renders the window's rays with latent l_ij (frozen density, cached
 //!   surface samples — see [`crate::stylized::surface`]);
 //! - the decoder stylizes view i with style j (AdaIN on the whole view's relu4_1, decoded on
-//!   the window's part of the feature map);
-//! - L_mimic = mean ‖C_nerf − C_2d‖² over the window.
+//!   the window's part of the feature map): C_2d, without the decoder's palette (the decoder
+//!   keeps learning here, and its palette was fitted to it before; BENCHMARKS.md, "The
+//!   painting's palette");
+//! - L_mimic = mean ‖C_nerf − C_2d‖² over the window (C_2d clamped to [0, 1] as the NeRF's
+//!   target).
 //!
 //! The style module and the latents minimise L_N = L_mimic + λ_d L_d + λ_sN L_s(C_nerf window)
 //! (C_2d detached; the last term is ours, `nerf_style_weight`, see docs/STYLIZED.md). After the
@@ -14,8 +17,13 @@
 //! pull the decoder towards consistency while the style and content losses keep it stylizing.
 //! While the decoder is frozen its outputs are cached per (view, style).
 //!
+//! At the end, the stylized NeRF gets a palette per style as the decoders did ([`Palette`]),
+//! fitted to its own colours on every training view under the style's mean latent: its colour
+//! comes from the colour-blind encoder's style loss and from a teacher in colours partly its
+//! own. One map per style for every view; `render_stylized` applies it to the NeRF's colours.
+//!
 //! Output folder: `style_module.safetensors`, `latents.safetensors` (codes, μ, σ) with
-//! `latents.json` (style names), `decoder.safetensors` (fine-tuned), `curves.png` (the loss
+//! `latents.json` (style names, the NeRF's palettes), `decoder.safetensors` (fine-tuned), `curves.png` (the loss
 //! terms over the steps), `metrics.json` (written last), and `ckpt/` (style module, latents, decoder, both optimisers' moments, RNG).
 
 use std::collections::HashMap;
@@ -42,6 +50,7 @@ use crate::style2d::encoder::{Features, VggEncoder};
 use crate::style2d::images::{hwc_to_tensor, StyleImage};
 use crate::style2d::losses::{content_loss, mse, style_loss};
 use crate::style2d::network::{AdaInNet, StyleTarget};
+use crate::style2d::palette::Palette;
 use crate::style2d::weights::EncoderWeights;
 use crate::stylized::latents::LatentCodes;
 use crate::stylized::style_module::{StyleModule, StyleModuleConfig};
@@ -82,7 +91,16 @@ pub struct MutualConfig {
     pub style_module: StyleModuleConfig,
     /// Longer side the style images are resized to for their statistics.
     pub style_size: u32,
+    /// Fit the stylized NeRF's palette for each style at the end ([`Palette`], as
+    /// `decoder_pretrain` does for its decoders): the chroma map that gives its colours on the
+    /// training views the painting's chroma and mean luma. Off: identity maps.
+    #[serde(default = "default_palette")]
+    pub palette: bool,
     pub seed: u64,
+}
+
+fn default_palette() -> bool {
+    true
 }
 
 impl MutualConfig {
@@ -101,6 +119,7 @@ impl MutualConfig {
             learnable_latents: true,
             style_module: StyleModuleConfig::default(),
             style_size: 256,
+            palette: true,
             seed: 0,
         };
         match preset {
@@ -166,11 +185,15 @@ pub struct MutualReport {
     pub latent_deviation: f32,
 }
 
-/// What `latents.json` holds: the style names, in latent order.
+/// What `latents.json` holds: the style names, in latent order, and the NeRF's palettes.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LatentsFile {
     pub styles: Vec<String>,
     pub num_views: usize,
+    /// Per style, the colour map applied to the stylized NeRF's colours under that style
+    /// (empty in files written before palettes: identity).
+    #[serde(default)]
+    pub palettes: Vec<Palette>,
 }
 
 /// What a checkpoint holds besides the weights and the optimisers' moments.
@@ -263,6 +286,37 @@ impl TrainingViews {
     }
 }
 
+/// Per style, the palette that gives the stylized NeRF's colours on every training view, under
+/// the style's mean latent (as rendered), the painting's chroma and mean luma.
+fn nerf_palettes(
+    module: &StyleModule,
+    latents: &LatentCodes,
+    data: &TrainingViews,
+    paintings: &[Tensor],
+    control: &StageControl,
+    device: &Device,
+) -> Result<Vec<Palette>> {
+    let (w, h) = (data.width(), data.height());
+    paintings
+        .iter()
+        .enumerate()
+        .map(|(s, painting)| {
+            let latent = latents.blend(&[(s, 1.0)])?;
+            let frames = per_view(
+                data.surfaces.len(),
+                device,
+                Some(control),
+                |k| {
+                    let rgb = module.render(&data.surfaces[k].all(device)?, &latent)?;
+                    Ok(rgb.detach().t()?.reshape((3, h, w))?)
+                },
+                |_| {},
+            )?;
+            Palette::fit(&frames, painting)
+        })
+        .collect()
+}
+
 /// `[1, 3, h, w]` → `[h · w, 3]` (pixel rows).
 fn pixel_rows(img: &Tensor) -> Result<Tensor> {
     let (_, c, h, w) = img.dims4()?;
@@ -318,13 +372,14 @@ pub fn run(
         encoder: VggEncoder::new(inputs.encoder, device)?,
         decoder,
     };
-    let targets: Vec<StyleTarget> = inputs
+    let paintings = inputs
         .styles
         .iter()
-        .map(|s| {
-            let t = crate::style2d::images::to_tensor(&s.image, cfg.style_size, device)?;
-            Ok(net.style_target(&t)?)
-        })
+        .map(|s| crate::style2d::images::to_tensor(&s.image, cfg.style_size, device))
+        .collect::<Result<Vec<_>>>()?;
+    let targets: Vec<StyleTarget> = paintings
+        .iter()
+        .map(|t| Ok(net.style_target(t)?))
         .collect::<Result<_>>()?;
     let data = TrainingViews::load(&inputs, &net.encoder, control, device)?;
     let (n_views, n_styles) = (data.indices.len(), inputs.styles.len());
@@ -446,7 +501,7 @@ pub fn run(
                 (rows.index_select(&pixel_idx, 0)?, None)
             }
         };
-        let mimic_nerf = mse(&c_nerf, &c_2d.detach())?;
+        let mimic_nerf = mse(&c_nerf, &c_2d.detach().clamp(0f32, 1f32)?)?;
         let nll = latents.nll(v, s)?;
         let mut total = (&mimic_nerf + (&nll * cfg.latent_weight)?)?;
         let mut nerf_style = 0.0;
@@ -509,9 +564,14 @@ pub fn run(
     std::fs::create_dir_all(out).map_err(|e| EngineError::io(out, e))?;
     module.save(&out.join("style_module.safetensors"))?;
     latents.save(&out.join("latents.safetensors"))?;
+    let palettes = match cfg.palette {
+        true => nerf_palettes(&module, &latents, &data, &paintings, control, device)?,
+        false => vec![Palette::IDENTITY; n_styles],
+    };
     let latents_file = LatentsFile {
         styles: inputs.styles.iter().map(|s| s.name.clone()).collect(),
         num_views: n_views,
+        palettes,
     };
     write_json_atomic(&out.join("latents.json"), &latents_file)?;
     net.decoder

@@ -8,7 +8,9 @@
 //! | stylized NeRF for a few views); its entry in `metrics.json` lists the animations written
 //! and says why there is no MP4 when there is none (also at the end of `eval.md`). With evaluation on (the default), it also renders the
 //! path with (a) the plain-AdaIN decoder of `decoder_pretrain` (trained without L_co) frame by
-//! frame (the paper's NeRF→AdaIN baseline) and (b) the mutually fine-tuned decoder, and
+//! frame (the paper's NeRF→AdaIN baseline) and (b) the mutually fine-tuned decoder, each
+//! through its palette (`styles.json`, as the stylized NeRF's teacher; the stylized NeRF's own
+//! palettes are in `latents.json`), and
 //! reports for (a), (b) and (c) the stylized NeRF the warped consistency errors, the
 //! style/content losses ([`crate::eval`]) and the colour/texture distances to the painting
 //! measured outside the encoder ([`crate::style_metrics`]), with the unstylized frames'
@@ -30,7 +32,8 @@ use crate::field::saved::{self, FieldMeta};
 use crate::image_io;
 use crate::per_view::per_view;
 use crate::stages::decoder_pretrain::crop_views;
-use crate::stages::mutual_learning::LatentsFile;
+use crate::stages::decoder_pretrain::StyleLatent;
+use crate::stages::mutual_learning::{read_styles_file, LatentsFile};
 use crate::stages::pose_consistency::{PoseFrames, PoseScores, GAPS};
 use crate::stages::{Outcome, Progress, StageControl};
 use crate::style2d::adain::{adain, Stats};
@@ -39,6 +42,7 @@ use crate::style2d::decoder::Decoder;
 use crate::style2d::encoder::VggEncoder;
 use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc, StyleImage};
 use crate::style2d::network::StyleTarget;
+use crate::style2d::palette::Palette;
 use crate::style2d::weights::EncoderWeights;
 use crate::style_metrics::StyleReference;
 use crate::stylized::latents::LatentCodes;
@@ -260,6 +264,16 @@ impl Blend {
             .join("_")
     }
 
+    /// A teacher's palette for the blend: the weighted mean of its styles' maps.
+    fn palette(&self, palettes: &[Palette]) -> Palette {
+        let parts: Vec<_> = self
+            .weights
+            .iter()
+            .map(|&(j, w)| (palettes[j], w))
+            .collect();
+        Palette::blend(&parts)
+    }
+
     /// The AdaIN target of the blend: weighted mean of the styles' statistics.
     fn style_target(&self, targets: &[StyleTarget]) -> Result<StyleTarget> {
         let total: f32 = self.weights.iter().map(|(_, w)| w).sum();
@@ -406,11 +420,11 @@ pub fn run(
 ) -> Result<Outcome<RenderStylizedReport>> {
     let started = std::time::Instant::now();
     let latents_json = inputs.mutual_dir.join("latents.json");
-    let names: LatentsFile = serde_json::from_slice(
+    let latents_file: LatentsFile = serde_json::from_slice(
         &std::fs::read(&latents_json).map_err(|e| EngineError::io(&latents_json, e))?,
     )
     .map_err(|e| EngineError::artifact(&latents_json, format!("cannot parse: {e}")))?;
-    let names = names.styles;
+    let names = latents_file.styles;
     if names.len() != inputs.styles.len() {
         return Err(EngineError::artifact(
             &latents_json,
@@ -421,6 +435,16 @@ pub fn run(
             ),
         ));
     }
+    let nerf_palettes = match latents_file.palettes.len() {
+        0 => vec![Palette::IDENTITY; names.len()],
+        n if n == names.len() => latents_file.palettes,
+        n => {
+            return Err(EngineError::artifact(
+                &latents_json,
+                format!("{n} palettes recorded for {} styles", names.len()),
+            ))
+        }
+    };
     let specs: Vec<Blend> = if cfg.styles.is_empty() {
         names
             .iter()
@@ -434,6 +458,12 @@ pub fn run(
     };
     let module = StyleModule::load(&inputs.mutual_dir.join("style_module.safetensors"), device)?;
     let latents = LatentCodes::load(&inputs.mutual_dir.join("latents.safetensors"), device)?;
+    let styles_file = read_styles_file(inputs.decoder_dir, inputs.styles)?;
+    let palettes = |of: fn(&StyleLatent) -> Palette| -> Vec<Palette> {
+        styles_file.styles.iter().map(of).collect()
+    };
+    let (finetuned_palettes, baseline_palettes) =
+        (palettes(|s| s.palette), palettes(|s| s.adain_palette));
     let encoder = VggEncoder::new(inputs.encoder, device)?;
     let finetuned = Decoder::load(&inputs.mutual_dir.join("decoder.safetensors"), device)?.0;
     let baseline = Decoder::load(
@@ -503,10 +533,12 @@ pub fn run(
         Some(p) => relu4_1(&p.photoreal)?,
         None => Vec::new(),
     };
-    let stylize = |surface: &SurfaceSamples, latent: &Tensor| -> Result<Tensor> {
+    let stylize = |surface: &SurfaceSamples,
+                   (latent, palette): (&Tensor, Palette)|
+     -> Result<Tensor> {
         // Detached: a frame kept with its graph would hold every activation of the
         // style module (about 100 MB per frame at 128²).
-        let rgb = module.render(&surface.all(device)?, latent)?.detach();
+        let rgb = palette.apply_rows(&module.render(&surface.all(device)?, latent)?.detach())?;
         Ok(rgb
             .t()?
             .reshape((3, path.height, path.width))?
@@ -525,13 +557,17 @@ pub fn run(
         let folder = blend.folder(&names);
         let dir = out.join(&folder);
         let latent = latents.blend(&blend.weights)?;
+        // The stylized NeRF: the blend's latent and palette.
+        let nerf = (&latent, blend.palette(&nerf_palettes));
         let target = blend.style_target(&targets)?;
+        let finetuned = (&finetuned, blend.palette(&finetuned_palettes));
+        let baseline = (&baseline, blend.palette(&baseline_palettes));
         let stylized = per_view(
             path.surfaces.len(),
             device,
             Some(control),
             |k| {
-                let frame = stylize(&path.surfaces[k], &latent)?;
+                let frame = stylize(&path.surfaces[k], nerf)?;
                 save_frame(
                     &dir.join("frames").join(format!("frame_{k:04}.png")),
                     &frame,
@@ -548,22 +584,24 @@ pub fn run(
             },
         )?;
         let (animations, animation_note) = write_animation(&dir, &stylized, cfg.frame_ms)?;
-        let decode = |decoder: &Decoder, features: &[Tensor]| -> Result<Vec<Tensor>> {
-            per_view(
-                features.len(),
-                device,
-                None,
-                |k| {
-                    Ok(decoder
-                        .forward(&adain(&features[k], &target.stats[3], 1.0)?)?
-                        .detach()
-                        .squeeze(0)?
-                        .clamp(0f32, 1f32)?)
-                },
-                |_| {},
-            )
-        };
-        let adain_frames = decode(&baseline, &features)?;
+        // A 2D teacher: a decoder with its palette for the blend.
+        let decode =
+            |(decoder, palette): (&Decoder, Palette), features: &[Tensor]| -> Result<Vec<Tensor>> {
+                per_view(
+                    features.len(),
+                    device,
+                    None,
+                    |k| {
+                        let out = decoder.forward(&adain(&features[k], &target.stats[3], 1.0)?)?;
+                        Ok(palette
+                            .apply(&out.detach())?
+                            .squeeze(0)?
+                            .clamp(0f32, 1f32)?)
+                    },
+                    |_| {},
+                )
+            };
+        let adain_frames = decode(baseline, &features)?;
         let main_style = blend
             .weights
             .iter()
@@ -587,7 +625,7 @@ pub fn run(
             };
             let reference = &references[main_style];
             unstylized = Some(OutsideScores::of(reference, &every(&path.photoreal))?);
-            let finetuned_frames = decode(&finetuned, &features)?;
+            let finetuned_frames = decode(finetuned, &features)?;
             for (method, frames) in [
                 ("NeRF -> AdaIN", &adain_frames),
                 ("NeRF -> fine-tuned decoder", &finetuned_frames),
@@ -611,14 +649,14 @@ pub fn run(
                 pose_surfaces.len(),
                 device,
                 None,
-                |k| stylize(&pose_surfaces[k], &latent),
+                |k| stylize(&pose_surfaces[k], nerf),
                 |_| {},
             )?;
             for (method, frames) in [
-                ("NeRF -> AdaIN", decode(&baseline, &pose_features)?),
+                ("NeRF -> AdaIN", decode(baseline, &pose_features)?),
                 (
                     "NeRF -> fine-tuned decoder",
-                    decode(&finetuned, &pose_features)?,
+                    decode(finetuned, &pose_features)?,
                 ),
                 ("stylized NeRF", stylized),
             ] {

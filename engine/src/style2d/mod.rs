@@ -15,6 +15,7 @@ pub mod losses;
 pub mod network;
 pub mod pad;
 pub mod painted;
+pub mod palette;
 pub mod resample;
 pub mod st_file;
 pub mod style_features;
