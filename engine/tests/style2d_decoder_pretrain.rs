@@ -83,19 +83,41 @@ fn styles() -> Vec<StyleImage> {
     ]
 }
 
+/// The views of a small generated scene (in a temporary folder), the bundled encoder and the
+/// two test styles.
+struct Fixture {
+    tmp: tempfile::TempDir,
+    views: RenderedViews,
+    enc: EncoderWeights,
+    styles: Vec<StyleImage>,
+}
+
+impl Fixture {
+    fn new() -> Self {
+        let tmp = tempfile::tempdir().unwrap();
+        Self {
+            views: views(&tmp.path().join("scene")),
+            enc: EncoderWeights::bundled().unwrap(),
+            styles: styles(),
+            tmp,
+        }
+    }
+
+    fn inputs(&self) -> Inputs<'_> {
+        Inputs {
+            views: &self.views,
+            styles: &self.styles,
+            encoder: &self.enc,
+            init_decoder: None,
+        }
+    }
+}
+
 #[test]
 fn tiny_run_writes_outputs_and_resumes_exactly() {
-    let tmp = tempfile::tempdir().unwrap();
-    let views = views(&tmp.path().join("scene"));
-    let enc = EncoderWeights::bundled().unwrap();
+    let fixture = Fixture::new();
+    let (tmp, inputs) = (&fixture.tmp, fixture.inputs());
     let cfg = DecoderPretrainConfig::preset(Preset::Tiny);
-    let styles = styles();
-    let inputs = Inputs {
-        views: &views,
-        styles: &styles,
-        encoder: &enc,
-        init_decoder: None,
-    };
     let dev = Device::Cpu;
 
     let full = tmp.path().join("full");
@@ -162,16 +184,8 @@ fn tiny_run_writes_outputs_and_resumes_exactly() {
 
 #[test]
 fn each_teachers_palette_gives_its_output_the_paintings_colours() {
-    let tmp = tempfile::tempdir().unwrap();
-    let views = views(&tmp.path().join("scene"));
-    let enc = EncoderWeights::bundled().unwrap();
-    let styles = styles();
-    let inputs = Inputs {
-        views: &views,
-        styles: &styles,
-        encoder: &enc,
-        init_decoder: None,
-    };
+    let fixture = Fixture::new();
+    let (tmp, inputs) = (&fixture.tmp, fixture.inputs());
     let dev = Device::Cpu;
     let cfg = DecoderPretrainConfig {
         steps: 2,
@@ -185,7 +199,7 @@ fn each_teachers_palette_gives_its_output_the_paintings_colours() {
     let out = tmp.path().join("on");
     run(inputs, &cfg, &out, &StageControl::default(), &dev).unwrap();
     let file = read_styles(&out);
-    let encoder = VggEncoder::new(&enc, &dev).unwrap();
+    let encoder = VggEncoder::new(&fixture.enc, &dev).unwrap();
     let mean = |rgb: &[Vec<f32>]| {
         let n = rgb.iter().map(|x| x.len() / 3).sum::<usize>() as f32;
         let mut m = [0.0f32; 3];
@@ -207,15 +221,15 @@ fn each_teachers_palette_gives_its_output_the_paintings_colours() {
             encoder: encoder.clone(),
             decoder: Decoder::load(&out.join(decoder_file), &dev).unwrap().0,
         };
-        for (style, latent) in styles.iter().zip(&file.styles) {
+        for (style, latent) in fixture.styles.iter().zip(&file.styles) {
             let painting = to_tensor(&style.image, cfg.style_size, &dev).unwrap();
             let target = net.style_target(&painting).unwrap();
             let palette = palette_of(latent);
             assert_ne!(palette, Palette::IDENTITY, "{decoder_file} {}", style.name);
             // The teacher's output on every view, as seen, through the palette.
-            let mapped: Vec<Vec<f32>> = (0..views.len())
+            let mapped: Vec<Vec<f32>> = (0..fixture.views.len())
                 .map(|i| {
-                    let x = hwc_to_tensor(views.rgb(i), 32, 32, &dev).unwrap();
+                    let x = hwc_to_tensor(fixture.views.rgb(i), 32, 32, &dev).unwrap();
                     let mut rgb = tensor_to_hwc(&net.stylize(&x, &target, 1.0).unwrap())
                         .unwrap()
                         .2;
@@ -292,16 +306,8 @@ fn the_bundled_decoder_is_the_start_only_for_its_encoder() {
 
 #[test]
 fn bad_schedule_settings_are_config_errors_naming_the_field() {
-    let tmp = tempfile::tempdir().unwrap();
-    let views = views(&tmp.path().join("scene"));
-    let enc = EncoderWeights::bundled().unwrap();
-    let styles = styles();
-    let inputs = Inputs {
-        views: &views,
-        styles: &styles,
-        encoder: &enc,
-        init_decoder: None,
-    };
+    let fixture = Fixture::new();
+    let (tmp, inputs) = (&fixture.tmp, fixture.inputs());
     let base = DecoderPretrainConfig::preset(Preset::Tiny);
     for (cfg, field) in [
         (

@@ -133,15 +133,22 @@ fn the_stylized_nerfs_palette_is_fitted_after_training_and_applied_to_its_frames
         },
         &StageControl::default(),
     ));
-    let palettes = |dir: &Path| -> Vec<Palette> {
+    let palettes = |dir: &Path| -> (Vec<Palette>, Vec<Palette>) {
         let file: LatentsFile =
             serde_json::from_slice(&std::fs::read(dir.join("latents.json")).unwrap()).unwrap();
-        file.palettes
+        (file.palettes, file.decoder_palettes)
     };
-    let (fitted, identity) = (palettes(&on), palettes(&off));
+    let ((fitted, decoder_fitted), (identity, decoder_identity)) = (palettes(&on), palettes(&off));
     assert_eq!(fitted.len(), u.styles.len());
-    assert!(fitted.iter().all(|p| *p != Palette::IDENTITY));
-    assert!(identity.iter().all(|p| *p == Palette::IDENTITY));
+    assert_eq!(decoder_fitted.len(), u.styles.len());
+    assert!(fitted
+        .iter()
+        .chain(&decoder_fitted)
+        .all(|p| *p != Palette::IDENTITY));
+    assert!(identity
+        .iter()
+        .chain(&decoder_identity)
+        .all(|p| *p == Palette::IDENTITY));
     // Fitted after training: the field's style module is the same either way.
     let read = |dir: &Path, f: &str| std::fs::read(dir.join(f)).unwrap();
     assert_eq!(

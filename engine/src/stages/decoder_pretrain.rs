@@ -18,9 +18,9 @@
 //! At the end, each decoder gets a palette per style ([`Palette`]): the affine colour map that
 //! gives its output on the evaluation views the painting's chroma distribution (mean and
 //! covariance) and mean luma, its strokes kept. The encoder's deep features carry little
-//! colour, so without it the teacher paints the strokes in colours partly its own. One map per style for all views: it moves no view against
-//! another. Every later use of a decoder's output (mutual learning's targets, the evaluation's
-//! NeRF→AdaIN) applies its palette.
+//! colour, so without it the teacher paints the strokes in colours partly its own. One map
+//! per style for all views: it moves no view against another. The evaluation's NeRF→AdaIN
+//! applies the plain-AdaIN decoder's; the sheets show the final decoder's.
 //!
 //! Output folder: `decoder.safetensors`, `adain_decoder.safetensors`, `vae.safetensors`,
 //! `styles.json` (per style: name, μ, σ, both decoders' palettes, plus how the style features
@@ -200,9 +200,9 @@ pub struct StyleLatent {
     pub name: String,
     #[serde(flatten)]
     pub latent: LatentGaussian,
-    /// The colour map applied to `decoder.safetensors`' output for this style (and to that of
-    /// the decoder `mutual_learning` fine-tunes from it): see [`Palette`]. Identity in files
-    /// written before palettes, or with `palette` off.
+    /// The colour map of `decoder.safetensors`' output for this style, as its sheet shows it
+    /// (`mutual_learning` fits its own for the decoder it fine-tunes from this one): see
+    /// [`Palette`]. Identity in files written before palettes, or with `palette` off.
     #[serde(default)]
     pub palette: Palette,
     /// The same for `adain_decoder.safetensors`.

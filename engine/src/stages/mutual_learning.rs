@@ -21,9 +21,12 @@
 //! fitted to its own colours on every training view under the style's mean latent: its colour
 //! comes from the colour-blind encoder's style loss and from a teacher in colours partly its
 //! own. One map per style for every view; `render_stylized` applies it to the NeRF's colours.
+//! The fine-tuned decoder's palettes are refitted the same way (on its output for every
+//! training view): it changed here, and `decoder_pretrain`'s maps describe it as it was.
 //!
 //! Output folder: `style_module.safetensors`, `latents.safetensors` (codes, μ, σ) with
-//! `latents.json` (style names, the NeRF's palettes), `decoder.safetensors` (fine-tuned), `curves.png` (the loss
+//! `latents.json` (style names, the NeRF's and the fine-tuned decoder's palettes),
+//! `decoder.safetensors` (fine-tuned), `curves.png` (the loss
 //! terms over the steps), `metrics.json` (written last), and `ckpt/` (style module, latents, decoder, both optimisers' moments, RNG).
 
 use std::collections::HashMap;
@@ -185,7 +188,8 @@ pub struct MutualReport {
     pub latent_deviation: f32,
 }
 
-/// What `latents.json` holds: the style names, in latent order, and the NeRF's palettes.
+/// What `latents.json` holds: the style names, in latent order, and the palettes of the NeRF
+/// and of the fine-tuned decoder.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LatentsFile {
     pub styles: Vec<String>,
@@ -194,6 +198,10 @@ pub struct LatentsFile {
     /// (empty in files written before palettes: identity).
     #[serde(default)]
     pub palettes: Vec<Palette>,
+    /// Per style, the fine-tuned decoder's palette (as `palettes`): the decoder changed here,
+    /// so `decoder_pretrain`'s map for it no longer fits.
+    #[serde(default)]
+    pub decoder_palettes: Vec<Palette>,
 }
 
 /// What a checkpoint holds besides the weights and the optimisers' moments.
@@ -286,30 +294,24 @@ impl TrainingViews {
     }
 }
 
-/// Per style, the palette that gives the stylized NeRF's colours on every training view, under
-/// the style's mean latent (as rendered), the painting's chroma and mean luma.
-fn nerf_palettes(
-    module: &StyleModule,
-    latents: &LatentCodes,
+/// Per style `s`, the palette fitted to `frame(s, k)` `[3, H, W]` over every training view `k`
+/// (as seen), towards the painting's colours.
+fn fit_palettes(
     data: &TrainingViews,
     paintings: &[Tensor],
     control: &StageControl,
     device: &Device,
+    frame: impl Fn(usize, usize) -> Result<Tensor> + Sync,
 ) -> Result<Vec<Palette>> {
-    let (w, h) = (data.width(), data.height());
     paintings
         .iter()
         .enumerate()
         .map(|(s, painting)| {
-            let latent = latents.blend(&[(s, 1.0)])?;
             let frames = per_view(
-                data.surfaces.len(),
+                data.indices.len(),
                 device,
                 Some(control),
-                |k| {
-                    let rgb = module.render(&data.surfaces[k].all(device)?, &latent)?;
-                    Ok(rgb.detach().t()?.reshape((3, h, w))?)
-                },
+                |k| frame(s, k),
                 |_| {},
             )?;
             Palette::fit(&frames, painting)
@@ -564,14 +566,31 @@ pub fn run(
     std::fs::create_dir_all(out).map_err(|e| EngineError::io(out, e))?;
     module.save(&out.join("style_module.safetensors"))?;
     latents.save(&out.join("latents.safetensors"))?;
-    let palettes = match cfg.palette {
-        true => nerf_palettes(&module, &latents, &data, &paintings, control, device)?,
-        false => vec![Palette::IDENTITY; n_styles],
+    // The palettes: the stylized NeRF's under each style's mean latent (as rendered), and the
+    // fine-tuned decoder's, on every training view.
+    let (w, h) = (data.width(), data.height());
+    let (palettes, decoder_palettes) = if cfg.palette {
+        let means = (0..n_styles)
+            .map(|s| latents.blend(&[(s, 1.0)]))
+            .collect::<Result<Vec<_>>>()?;
+        let nerf = fit_palettes(&data, &paintings, control, device, |s, k| {
+            let rgb = module.render(&data.surfaces[k].all(device)?, &means[s])?;
+            Ok(rgb.detach().t()?.reshape((3, h, w))?)
+        })?;
+        let decoder = fit_palettes(&data, &paintings, control, device, |s, k| {
+            let target = adain(&data.features[k], &targets[s].stats[3], 1.0)?;
+            Ok(net.decoder.forward(&target)?.detach().squeeze(0)?)
+        })?;
+        (nerf, decoder)
+    } else {
+        let identity = vec![Palette::IDENTITY; n_styles];
+        (identity.clone(), identity)
     };
     let latents_file = LatentsFile {
         styles: inputs.styles.iter().map(|s| s.name.clone()).collect(),
         num_views: n_views,
         palettes,
+        decoder_palettes,
     };
     write_json_atomic(&out.join("latents.json"), &latents_file)?;
     net.decoder

@@ -9,8 +9,8 @@
 //! and says why there is no MP4 when there is none (also at the end of `eval.md`). With evaluation on (the default), it also renders the
 //! path with (a) the plain-AdaIN decoder of `decoder_pretrain` (trained without L_co) frame by
 //! frame (the paper's NeRF→AdaIN baseline) and (b) the mutually fine-tuned decoder, each
-//! through its palette (`styles.json`, as the stylized NeRF's teacher; the stylized NeRF's own
-//! palettes are in `latents.json`), and
+//! through its palette (`styles.json` and `latents.json`; the stylized NeRF's own palettes are
+//! in `latents.json` too), and
 //! reports for (a), (b) and (c) the stylized NeRF the warped consistency errors, the
 //! style/content losses ([`crate::eval`]) and the colour/texture distances to the painting
 //! measured outside the encoder ([`crate::style_metrics`]), with the unstylized frames'
@@ -32,7 +32,6 @@ use crate::field::saved::{self, FieldMeta};
 use crate::image_io;
 use crate::per_view::per_view;
 use crate::stages::decoder_pretrain::crop_views;
-use crate::stages::decoder_pretrain::StyleLatent;
 use crate::stages::mutual_learning::{read_styles_file, LatentsFile};
 use crate::stages::pose_consistency::{PoseFrames, PoseScores, GAPS};
 use crate::stages::{Outcome, Progress, StageControl};
@@ -435,16 +434,17 @@ pub fn run(
             ),
         ));
     }
-    let nerf_palettes = match latents_file.palettes.len() {
-        0 => vec![Palette::IDENTITY; names.len()],
-        n if n == names.len() => latents_file.palettes,
-        n => {
-            return Err(EngineError::artifact(
-                &latents_json,
-                format!("{n} palettes recorded for {} styles", names.len()),
-            ))
-        }
+    // One palette per style (none recorded: identity).
+    let per_style = |recorded: Vec<Palette>, what: &str| match recorded.len() {
+        0 => Ok(vec![Palette::IDENTITY; names.len()]),
+        n if n == names.len() => Ok(recorded),
+        n => Err(EngineError::artifact(
+            &latents_json,
+            format!("{n} {what} recorded for {} styles", names.len()),
+        )),
     };
+    let nerf_palettes = per_style(latents_file.palettes, "palettes")?;
+    let finetuned_palettes = per_style(latents_file.decoder_palettes, "decoder palettes")?;
     let specs: Vec<Blend> = if cfg.styles.is_empty() {
         names
             .iter()
@@ -458,12 +458,11 @@ pub fn run(
     };
     let module = StyleModule::load(&inputs.mutual_dir.join("style_module.safetensors"), device)?;
     let latents = LatentCodes::load(&inputs.mutual_dir.join("latents.safetensors"), device)?;
-    let styles_file = read_styles_file(inputs.decoder_dir, inputs.styles)?;
-    let palettes = |of: fn(&StyleLatent) -> Palette| -> Vec<Palette> {
-        styles_file.styles.iter().map(of).collect()
-    };
-    let (finetuned_palettes, baseline_palettes) =
-        (palettes(|s| s.palette), palettes(|s| s.adain_palette));
+    let baseline_palettes: Vec<Palette> = read_styles_file(inputs.decoder_dir, inputs.styles)?
+        .styles
+        .iter()
+        .map(|s| s.adain_palette)
+        .collect();
     let encoder = VggEncoder::new(inputs.encoder, device)?;
     let finetuned = Decoder::load(&inputs.mutual_dir.join("decoder.safetensors"), device)?.0;
     let baseline = Decoder::load(

@@ -1,6 +1,7 @@
-//! A painting's palette as a colour map applied to the 2D teacher's output. The HED encoder's
-//! features carry the strokes (luma structure) well and colour poorly, so an AdaIN decoder of
-//! them paints the painting's strokes in a palette partly its own. The map fixes the chroma
+//! A painting's palette as a colour map applied to a stylization's output (the 2D decoders',
+//! the stylized NeRF's). The HED encoder's features carry the strokes (luma structure) well
+//! and colour poorly, so an AdaIN decoder of them paints the painting's strokes in a palette
+//! partly its own, and a NeRF trained on its losses and its output inherits it. The map fixes the chroma
 //! and leaves the strokes: in BT.601 YCbCr it carries the output's chroma (Cb, Cr) mean and
 //! covariance onto the painting's with the optimal transport map between two Gaussians
 //! (`A = Σ_s^{-1/2} (Σ_s^{1/2} Σ_t Σ_s^{1/2})^{1/2} Σ_s^{-1/2}`, the map that moves colours
@@ -9,9 +10,9 @@
 //! optimal-transport form, restricted to chroma. As an RGB map it is affine:
 //! `x ↦ matrix · x + offset`.
 //!
-//! A job fits one map per style and decoder, from the decoder's output on the evaluation views
-//! pooled to the painting's pixels, and applies it to that decoder's output everywhere: one
-//! map for every view, so it moves no view against another.
+//! A job fits one map per style and per decoder or stylized NeRF, from its output on the
+//! scene's views pooled to the painting's pixels, and applies it to that output wherever it
+//! is shown: one map for every view, so it moves no view against another.
 
 use candle_core::Tensor;
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
@@ -111,8 +112,8 @@ impl Palette {
         let chroma = |m: &ColourMoments| {
             let mut c = regularised(&(y * m.cov * y.transpose()));
             for k in 0..3 {
-                c[(0, k)] = (k == 0) as u8 as f64;
-                c[(k, 0)] = (k == 0) as u8 as f64;
+                let unit = if k == 0 { 1.0 } else { 0.0 };
+                (c[(0, k)], c[(k, 0)]) = (unit, unit);
             }
             c
         };
