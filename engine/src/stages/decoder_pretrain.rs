@@ -49,7 +49,7 @@ use crate::style2d::encoder::VggEncoder;
 pub use crate::style2d::images::StyleImage;
 use crate::style2d::images::{hwc_to_tensor, tensor_to_hwc};
 use crate::style2d::network::{AdaInNet, StyleTarget};
-use crate::style2d::palette::Palette;
+use crate::style2d::palette::{ColourMoments, Palette};
 use crate::style2d::style_features::{crop_vectors, CropConfig};
 use crate::style2d::vae::{LatentGaussian, StyleVae, VaeConfig};
 use crate::style2d::weights::EncoderWeights;
@@ -587,31 +587,33 @@ pub fn run(
     let (mut co, mut st, mut n) = (0.0, 0.0, 0.0);
     let mut palettes = Vec::with_capacity(targets.len());
     for (k, target) in targets.iter().enumerate() {
-        let (mut outputs, mut adain_outputs, mut contents) = (Vec::new(), Vec::new(), Vec::new());
+        // Both decoders' outputs, measured one view at a time; the first three kept for the
+        // sheet.
+        let (mut moments, mut adain_moments, mut rows) = (Vec::new(), Vec::new(), Vec::new());
         for (i, nb) in pairs.iter().enumerate().step_by(cfg.eval_stride) {
             let full = Window::full(width, height);
             let (_, ls, lco, o) = pair_losses(&net, &mut cache, target, (i, full), (nb[0], full))?;
             co += lco.to_scalar::<f32>()? as f64;
             st += ls.to_scalar::<f32>()? as f64;
             n += 1.0;
-            outputs.push(o.get(0)?.detach());
+            let output = o.get(0)?.detach();
             let (x, feat) = cache.content(&net, i)?;
             if cfg.palette {
+                moments.extend(ColourMoments::of_image(&output)?);
                 let t = adain(&feat, &target.stats[3], 1.0)?;
-                adain_outputs.push(adain_decoder.forward(&t)?.detach());
+                adain_moments.extend(ColourMoments::of_image(&adain_decoder.forward(&t)?)?);
             }
-            if contents.len() < 3 {
-                contents.push(x);
+            if rows.len() < 3 {
+                rows.push((x, output));
             }
         }
-        let fit = |outputs: &[Tensor]| match cfg.palette {
-            true => Palette::fit(outputs, &style_tensors[k]),
+        let fit = |moments: &[ColourMoments]| match cfg.palette {
+            true => Palette::fit_moments(moments, &style_tensors[k]),
             false => Ok(Palette::IDENTITY),
         };
-        let palette = fit(&outputs)?;
-        let rows = contents
+        let palette = fit(&moments)?;
+        let rows = rows
             .into_iter()
-            .zip(&outputs)
             .map(|(x, o)| Ok((x, palette.apply(&o.unsqueeze(0)?)?.squeeze(0)?)))
             .collect::<Result<Vec<_>>>()?;
         contact_sheet(
@@ -619,7 +621,7 @@ pub fn run(
             &rows,
             &style_tensors[k],
         )?;
-        palettes.push((palette, fit(&adain_outputs)?));
+        palettes.push((palette, fit(&adain_moments)?));
     }
 
     // The style VAE on random crops of every style.

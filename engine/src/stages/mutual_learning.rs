@@ -53,7 +53,7 @@ use crate::style2d::encoder::{Features, VggEncoder};
 use crate::style2d::images::{hwc_to_tensor, StyleImage};
 use crate::style2d::losses::{content_loss, mse, style_loss};
 use crate::style2d::network::{AdaInNet, StyleTarget};
-use crate::style2d::palette::Palette;
+use crate::style2d::palette::{ColourMoments, Palette};
 use crate::style2d::weights::EncoderWeights;
 use crate::stylized::latents::LatentCodes;
 use crate::stylized::style_module::{StyleModule, StyleModuleConfig};
@@ -295,7 +295,7 @@ impl TrainingViews {
 }
 
 /// Per style `s`, the palette fitted to `frame(s, k)` `[3, H, W]` over every training view `k`
-/// (as seen), towards the painting's colours.
+/// (as seen), towards the painting's colours; frames are measured one at a time, not kept.
 fn fit_palettes(
     data: &TrainingViews,
     paintings: &[Tensor],
@@ -307,14 +307,14 @@ fn fit_palettes(
         .iter()
         .enumerate()
         .map(|(s, painting)| {
-            let frames = per_view(
+            let moments = per_view(
                 data.indices.len(),
                 device,
                 Some(control),
-                |k| frame(s, k),
+                |k| ColourMoments::of_image(&frame(s, k)?),
                 |_| {},
             )?;
-            Palette::fit(&frames, painting)
+            Palette::fit_moments(&moments.into_iter().flatten().collect::<Vec<_>>(), painting)
         })
         .collect()
 }

@@ -29,9 +29,10 @@ fn regularised(cov: &Matrix3<f64>) -> Matrix3<f64> {
     cov + Matrix3::identity() * (RIDGE * cov.trace() / 3.0 + 1e-8)
 }
 
-/// Mean and covariance of RGB pixels.
+/// Mean and covariance of a number of RGB pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ColourMoments {
+    pub pixels: f64,
     pub mean: Vector3<f64>,
     pub cov: Matrix3<f64>,
 }
@@ -54,7 +55,41 @@ impl ColourMoments {
             .map(|p| (p - mean) * (p - mean).transpose())
             .sum::<Matrix3<f64>>()
             / n as f64;
-        Some(Self { mean, cov })
+        Some(Self {
+            pixels: n as f64,
+            mean,
+            cov,
+        })
+    }
+
+    /// The moments of one image `[1, 3, H, W]` or `[3, H, W]` as seen (clamped to [0, 1]);
+    /// `None` without a pixel.
+    pub fn of_image(image: &Tensor) -> Result<Option<Self>> {
+        Ok(Self::of(&[&tensor_to_hwc(image)?.2]))
+    }
+
+    /// The moments of several sets of pixels pooled, as if measured at once (so images can
+    /// be measured one at a time); `None` without a pixel.
+    pub fn pool(parts: &[ColourMoments]) -> Option<Self> {
+        let n: f64 = parts.iter().map(|p| p.pixels).sum();
+        if n == 0.0 {
+            return None;
+        }
+        let mean = parts
+            .iter()
+            .map(|p| p.mean * p.pixels)
+            .sum::<Vector3<f64>>()
+            / n;
+        let cov = parts
+            .iter()
+            .map(|p| (p.cov + (p.mean - mean) * (p.mean - mean).transpose()) * p.pixels)
+            .sum::<Matrix3<f64>>()
+            / n;
+        Some(Self {
+            pixels: n,
+            mean,
+            cov,
+        })
     }
 }
 
@@ -131,19 +166,19 @@ impl Palette {
     /// The map that gives `outputs` (images `[1, 3, H, W]` or `[3, H, W]`, pooled, as seen:
     /// clamped to [0, 1]) the chroma moments and mean luma of `painting` (one such image).
     pub fn fit(outputs: &[Tensor], painting: &Tensor) -> Result<Palette> {
-        let pixels = |images: &[Tensor]| -> Result<ColourMoments> {
-            let rgb = images
-                .iter()
-                .map(|t| Ok(tensor_to_hwc(t)?.2))
-                .collect::<Result<Vec<_>>>()?;
-            let views: Vec<&[f32]> = rgb.iter().map(Vec::as_slice).collect();
-            ColourMoments::of(&views)
-                .ok_or_else(|| EngineError::config("palette", "no pixels to fit a palette to"))
-        };
-        Ok(Self::transport(
-            &pixels(outputs)?,
-            &pixels(std::slice::from_ref(painting))?,
-        ))
+        let parts = outputs
+            .iter()
+            .map(ColourMoments::of_image)
+            .collect::<Result<Vec<_>>>()?;
+        Self::fit_moments(&parts.into_iter().flatten().collect::<Vec<_>>(), painting)
+    }
+
+    /// [`Self::fit`] from the outputs' moments, measured one image at a time.
+    pub fn fit_moments(outputs: &[ColourMoments], painting: &Tensor) -> Result<Palette> {
+        let none = || EngineError::config("palette", "no pixels to fit a palette to");
+        let from = ColourMoments::pool(outputs).ok_or_else(none)?;
+        let to = ColourMoments::of_image(painting)?.ok_or_else(none)?;
+        Ok(Self::transport(&from, &to))
     }
 
     /// The weighted mean of maps (weights normalised; a blend of styles, or a map applied
@@ -226,6 +261,7 @@ mod tests {
     fn in_ycbcr(m: &ColourMoments) -> ColourMoments {
         let y = ycbcr();
         ColourMoments {
+            pixels: m.pixels,
             mean: y * m.mean,
             cov: y * m.cov * y.transpose(),
         }
@@ -313,6 +349,12 @@ mod tests {
         // Both the luma and the chroma means move to the painting's: so does the RGB mean.
         let pooled = ColourMoments::of(&[&mapped[0], &mapped[1]]).unwrap();
         let target = ColourMoments::of(&[&rgb(&painting)]).unwrap();
+        // Measured one image at a time and pooled: the same moments as measured at once.
+        let parts = [0, 1].map(|k| ColourMoments::of(&[&mapped[k]]).unwrap());
+        let at_once = ColourMoments::pool(&parts).unwrap();
+        assert_eq!(at_once.pixels, pooled.pixels);
+        assert!((at_once.mean - pooled.mean).amax() < 1e-12);
+        assert!((at_once.cov - pooled.cov).amax() < 1e-12);
         assert!((pooled.mean - target.mean).amax() < 1e-4);
         // Blends: a map against itself, and halfway to the identity.
         let same = Palette::blend(&[(p, 0.3), (p, 0.7)]);
