@@ -8,6 +8,7 @@ use std::process::Command;
 use stylenerf_engine::image_io::{load_rgb, save_rgb_png};
 use stylenerf_engine::style2d::images::StyleImage;
 use stylenerf_engine::style2d::painted;
+use stylenerf_engine::style2d::palette::ColourMoments;
 
 /// The output as (width, height, interleaved RGB).
 fn stylize(dir: &Path, out: &str, extra: &[&str]) -> (u32, u32, Vec<f32>) {
@@ -33,15 +34,6 @@ fn stylize(dir: &Path, out: &str, extra: &[&str]) -> (u32, u32, Vec<f32>) {
     (img.width(), img.height(), img.into_raw())
 }
 
-fn mean(rgb: &[f32]) -> [f32; 3] {
-    let n = (rgb.len() / 3) as f32;
-    let mut m = [0.0; 3];
-    for p in rgb.chunks_exact(3) {
-        (0..3).for_each(|c| m[c] += p[c] / n);
-    }
-    m
-}
-
 #[test]
 fn the_palette_gives_the_output_the_paintings_colours() {
     let dir = tempfile::tempdir().unwrap();
@@ -61,20 +53,15 @@ fn the_palette_gives_the_output_the_paintings_colours() {
     let own = stylize(dir.path(), "own.png", &["--no-palette"]);
     assert_eq!((mapped.0, mapped.1), (own.0, own.1));
     // The painting as the command reads it.
+    let mean = |rgb: &[f32]| ColourMoments::of(&[rgb]).unwrap().mean;
     let waves = mean(
         painted::paint("waves", StyleImage::BUILTIN_SIZE)
             .unwrap()
             .as_raw(),
     );
-    let distance = |m: [f32; 3]| {
-        (0..3)
-            .map(|c| (m[c] - waves[c]).powi(2))
-            .sum::<f32>()
-            .sqrt()
-    };
     let (with, without) = (mean(&mapped.2), mean(&own.2));
     assert!(
-        distance(with) < 0.03 && distance(with) < distance(without),
+        (with - waves).norm() < 0.03 && (with - waves).norm() < (without - waves).norm(),
         "mean colours: {with:?} with the palette, {without:?} without, {waves:?} the painting"
     );
 }
