@@ -21,7 +21,7 @@ use stylenerf_engine::stages::render_views::{self, RenderViewsConfig};
 use stylenerf_engine::stages::{Outcome, StageControl};
 use stylenerf_engine::style2d::images::{hwc_to_tensor, StyleImage};
 use stylenerf_engine::style2d::painted;
-use stylenerf_engine::style2d::palette::Palette;
+use stylenerf_engine::style2d::palette::{ColourMoments, Palette};
 use stylenerf_engine::style2d::weights::EncoderWeights;
 use stylenerf_engine::views::RenderedViews;
 use stylenerf_engine::Preset;
@@ -176,17 +176,12 @@ fn the_stylized_nerfs_palette_is_fitted_after_training_and_applied_to_its_frames
             .collect()
     };
     let (mapped, plain) = (frames(&on), frames(&off));
-    let mean = |images: &[Vec<f32>]| -> [f32; 3] {
-        let n = images.iter().map(|i| i.len() / 3).sum::<usize>() as f32;
-        let mut m = [0.0; 3];
-        for p in images.iter().flat_map(|i| i.chunks_exact(3)) {
-            (0..3).for_each(|c| m[c] += p[c] / n);
-        }
-        m
+    let mean = |rgb: &[Vec<f32>]| {
+        let images: Vec<&[f32]> = rgb.iter().map(Vec::as_slice).collect();
+        ColourMoments::of(&images).unwrap().mean
     };
-    let distance = |a: [f32; 3], b: [f32; 3]| (0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f32>();
     let painting = mean(&[u.styles[0].image.clone().into_raw()]);
-    assert!(distance(mean(&mapped), painting) < distance(mean(&plain), painting));
+    assert!((mean(&mapped) - painting).norm() < (mean(&plain) - painting).norm());
     for (m, p) in mapped.iter().zip(&plain) {
         let mut expected = p.clone();
         fitted[0].apply_rgb(&mut expected);
@@ -194,6 +189,33 @@ fn the_stylized_nerfs_palette_is_fitted_after_training_and_applied_to_its_frames
             assert!((a - b.clamp(0.0, 1.0)).abs() < 4.0 / 255.0, "{a} vs {b}");
         }
     }
+
+    // A latents.json whose palettes do not match its styles is refused, naming the file.
+    let mut file: LatentsFile =
+        serde_json::from_slice(&std::fs::read(on.join("latents.json")).unwrap()).unwrap();
+    file.palettes.truncate(1);
+    std::fs::write(on.join("latents.json"), serde_json::to_vec(&file).unwrap()).unwrap();
+    let err = render_stylized::run(
+        render_stylized::Inputs {
+            field_dir: &u.root.join("nerf"),
+            views: &u.views,
+            decoder_dir: &u.root.join("decoder"),
+            mutual_dir: &on,
+            styles: &u.styles,
+            encoder: &u.encoder,
+            path: None,
+        },
+        &cfg,
+        &on.join("refused"),
+        &StageControl::default(),
+        &Device::Cpu,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("latents.json") && err.contains("1 palettes recorded for 2 styles"),
+        "{err}"
+    );
 }
 
 fn mutual(out: &Path, cfg: &MutualConfig, ctl: &StageControl) -> Outcome<MutualReport> {
