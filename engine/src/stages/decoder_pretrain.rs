@@ -104,13 +104,9 @@ pub struct DecoderPretrainConfig {
     /// Fit each decoder's palette for each style ([`Palette`]): the affine colour map that
     /// gives the decoder's output on the views the painting's chroma and mean luma.
     /// Off: the decoders' own colours (identity maps).
-    #[serde(default = "default_palette")]
+    #[serde(default = "crate::style2d::palette::fitted_by_default")]
     pub palette: bool,
     pub seed: u64,
-}
-
-fn default_palette() -> bool {
-    true
 }
 
 /// The warp's relative depth tolerance (a serialisable copy of [`WarpConfig`]).

@@ -97,13 +97,9 @@ pub struct MutualConfig {
     /// Fit the stylized NeRF's palette for each style at the end ([`Palette`], as
     /// `decoder_pretrain` does for its decoders): the chroma map that gives its colours on the
     /// training views the painting's chroma and mean luma. Off: identity maps.
-    #[serde(default = "default_palette")]
+    #[serde(default = "crate::style2d::palette::fitted_by_default")]
     pub palette: bool,
     pub seed: u64,
-}
-
-fn default_palette() -> bool {
-    true
 }
 
 impl MutualConfig {

@@ -238,6 +238,12 @@ impl Palette {
     }
 }
 
+/// The stages' `palette` setting when a configuration does not name it (those written before
+/// palettes existed): palettes are fitted.
+pub(crate) fn fitted_by_default() -> bool {
+    true
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
