@@ -229,7 +229,7 @@ fn each_teachers_palette_gives_its_output_the_paintings_colours() {
                     let mut rgb = tensor_to_hwc(&net.stylize(&x, &target, 1.0).unwrap())
                         .unwrap()
                         .2;
-                    palette.apply_rgb(&mut rgb);
+                    palette.affine_rgb(&mut rgb);
                     rgb
                 })
                 .collect();

@@ -34,6 +34,29 @@ fn raw(t: &Tensor) -> (usize, usize, Vec<f32>) {
     (w as usize, h as usize, rgb)
 }
 
+/// How far the luma of `shown` strays from that of `source` once both means are removed (RMS):
+/// the strokes the palette is meant to keep (it only shifts luma) and that clipping flattens.
+fn strokes_lost(source: &[(usize, usize, Vec<f32>)], shown: &[(usize, usize, Vec<f32>)]) -> f64 {
+    let luma = |rgb: &[f32]| -> Vec<f64> {
+        rgb.chunks_exact(3)
+            .map(|p| 0.299 * p[0] as f64 + 0.587 * p[1] as f64 + 0.114 * p[2] as f64)
+            .collect()
+    };
+    let (mut sum, mut n) = (0.0, 0);
+    for ((_, _, a), (_, _, b)) in source.iter().zip(shown) {
+        let (a, b) = (luma(a), luma(b));
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let (ma, mb) = (mean(&a), mean(&b));
+        sum += a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| ((x - ma) - (y - mb)).powi(2))
+            .sum::<f64>();
+        n += a.len();
+    }
+    (sum / n as f64).sqrt()
+}
+
 fn view(v: &[(usize, usize, Vec<f32>)]) -> Vec<(usize, usize, &[f32])> {
     v.iter().map(|(w, h, x)| (*w, *h, x.as_slice())).collect()
 }
@@ -59,9 +82,9 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
     let (inputs, frames): (Vec<_>, Vec<_>) = files.iter().step_by(8).map(|p| load(p, &dev)).unzip();
     let mut rows = Vec::new();
     println!(
-        "| painting | colour SWD photo → teacher (ratio) → with palette (ratio) | texture photo → teacher → with palette |"
+        "| painting | colour SWD photo → teacher (ratio) → with palette (ratio) [clamped] | texture photo → teacher → with palette [clamped] | luma strokes lost [clamped] |"
     );
-    println!("|---|---|---|");
+    println!("|---|---|---|---|");
     for name in [
         "starry_night",
         "shipwreck",
@@ -71,20 +94,27 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
         let (style_input, (sw, sh, style)) = load(&shared.join(format!("styles/{name}.jpg")), &dev);
         let reference = StyleReference::new(sw, sh, &style);
         let target = net.style_target(&style_input).unwrap();
-        let stylized: Vec<_> = inputs
+        let outs: Vec<Tensor> = inputs
             .iter()
-            .map(|x| raw(&net.stylize(x, &target, 1.0).unwrap()))
+            .map(|x| net.stylize(x, &target, 1.0).unwrap())
             .collect();
+        let stylized: Vec<_> = outs.iter().map(raw).collect();
         let outputs: Vec<&[f32]> = stylized.iter().map(|s| s.2.as_slice()).collect();
         let palette = Palette::transport(
             &ColourMoments::of(&outputs).unwrap(),
             &ColourMoments::of(&[&style]).unwrap(),
         );
-        let mapped: Vec<_> = stylized
+        // As shown (in gamut), and with each channel clamped instead (the map before it was
+        // brought into gamut), for comparison.
+        let mapped: Vec<_> = outs
+            .iter()
+            .map(|t| raw(&palette.apply(t).unwrap()))
+            .collect();
+        let clamped: Vec<_> = stylized
             .iter()
             .map(|(w, h, rgb)| {
                 let mut rgb = rgb.clone();
-                palette.apply_rgb(&mut rgb);
+                palette.affine_rgb(&mut rgb);
                 rgb.iter_mut().for_each(|v| *v = v.clamp(0.0, 1.0));
                 (*w, *h, rgb)
             })
@@ -92,16 +122,22 @@ fn a_teacher_moves_fox_frames_toward_each_painting() {
         let floor = reference.score(&view(&frames));
         let teacher = reference.score(&view(&stylized));
         let with_palette = reference.score(&view(&mapped));
+        let with_clamping = reference.score(&view(&clamped));
         println!(
-            "| {name} | {:.2} → {:.2} ({:.2}×) → {:.2} ({:.2}×) | {:.3} → {:.3} → {:.3} |",
+            "| {name} | {:.2} → {:.2} ({:.2}×) → {:.2} ({:.2}×) [clamped: {:.2} ({:.2}×)] | {:.3} → {:.3} → {:.3} [{:.3}] | {:.4} [{:.4}] |",
             floor.0,
             teacher.0,
             teacher.0 / floor.0,
             with_palette.0,
             with_palette.0 / floor.0,
+            with_clamping.0,
+            with_clamping.0 / floor.0,
             floor.1,
             teacher.1,
-            with_palette.1
+            with_palette.1,
+            with_clamping.1,
+            strokes_lost(&stylized, &mapped),
+            strokes_lost(&stylized, &clamped)
         );
         assert!(teacher.0.is_finite() && teacher.1.is_finite());
         assert!(
