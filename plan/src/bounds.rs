@@ -30,6 +30,7 @@ const NERF_PRETRAIN: &[Range] = &[
     ("occupancy_alpha", 0.0, 1.0),
     ("distortion", 0.0, 1e3),
     ("opacity_entropy", 0.0, 1e3),
+    ("depth_weight", 0.0, 1e3),
     ("field.grid.levels", 1.0, 32.0),
     ("field.grid.features_per_level", 1.0, 8.0),
     ("field.grid.log2_table_size", 8.0, 24.0),

@@ -65,6 +65,15 @@ pub struct NerfConfig {
     /// or empty, so a real background is left to the background model instead of haze, and a
     /// wall is not left partly to it. Applied when the background is learned.
     pub opacity_entropy: f64,
+    /// Weight of the depth loss (as depth-nerfacto and DS-NeRF use): on each training ray whose
+    /// pixel has a known depth `d` in its frame's depth map (a depth camera's, or sparse points
+    /// from structure from motion; 0 = unknown), `((D − d) / d)² + (1 − O)²` with `D` the
+    /// rendered expected depth and `O` the opacity, averaged over those rays. 0 (the default):
+    /// the field learns from the photos alone and depth maps only grade it. Photos alone can
+    /// leave a field in a wrong geometry it does not leave (a room around the cameras:
+    /// BENCHMARKS.md, "The room, a fourth look").
+    #[serde(default)]
+    pub depth_weight: f64,
     /// Measure test PSNR every this many steps (0: only at the end); the time spent measuring
     /// is not counted as training time.
     pub eval_every: u64,
@@ -121,6 +130,7 @@ impl NerfConfig {
                 // model: "Opaque walls: the opacity entropy weight" in BENCHMARKS.md.
                 opacity_entropy: 1e-2,
                 distortion: 2e-3,
+                depth_weight: 0.0,
                 eval_every: 0,
             };
         match preset {
@@ -220,14 +230,17 @@ struct TrainingState {
     batch_rays: usize,
 }
 
-/// All training rays of the scene and their colours.
-fn training_rays(scene: &Scene) -> (RayBatch, Vec<f32>) {
+/// All training rays of the scene, their colours, and their known depths (0 = unknown) when a
+/// training frame has a depth map.
+fn training_rays(scene: &Scene) -> (RayBatch, Vec<f32>, Option<Vec<f32>>) {
     let mut rays = RayBatch {
         near: scene.near,
         far: scene.far,
         ..Default::default()
     };
     let mut colours = Vec::new();
+    let mut depths = Vec::new();
+    let has_depth = scene.train.iter().any(|&i| scene.frames[i].depth.is_some());
     for &i in &scene.train {
         let frame = &scene.frames[i];
         rays.extend(&RayBatch::for_camera(
@@ -237,8 +250,42 @@ fn training_rays(scene: &Scene) -> (RayBatch, Vec<f32>) {
             scene.far,
         ));
         colours.extend_from_slice(frame.image.as_raw());
+        if has_depth {
+            let pixels = frame.image.as_raw().len() / 3;
+            match &frame.depth {
+                Some(d) => depths.extend_from_slice(d),
+                None => depths.resize(depths.len() + pixels, 0.0),
+            }
+        }
     }
-    (rays, colours)
+    (rays, colours, has_depth.then_some(depths))
+}
+
+/// The depth loss of [`NerfConfig::depth_weight`] over a batch: `out`'s expected depth and
+/// opacity [R] against the rays' known depths (0 = unknown); `None` when no ray has one.
+fn depth_loss(
+    depth: &candle_core::Tensor,
+    opacity: &candle_core::Tensor,
+    known: &[f32],
+) -> Result<Option<candle_core::Tensor>> {
+    let count = known.iter().filter(|&&d| d > 0.0).count();
+    if count == 0 {
+        return Ok(None);
+    }
+    let dev = depth.device();
+    let mask: Vec<f32> = known.iter().map(|&d| f32::from(d > 0.0)).collect();
+    let inverse: Vec<f32> = known
+        .iter()
+        .map(|&d| if d > 0.0 { 1.0 / d } else { 0.0 })
+        .collect();
+    let n = known.len();
+    let mask = candle_core::Tensor::from_vec(mask, n, dev)?;
+    let inverse = candle_core::Tensor::from_vec(inverse, n, dev)?;
+    // (D − d) / d = D / d − 1 on known rays, 0 elsewhere.
+    let relative = ((depth * &inverse)? - &mask)?;
+    let transparency = ((1.0 - opacity)? * &mask)?;
+    let sum = (relative.sqr()? + transparency.sqr()?)?.sum_all()?;
+    Ok(Some((sum / count as f64)?))
 }
 
 /// Mean binary entropy of opacities [R] (clamped away from 0 and 1, where it has no slope).
@@ -277,7 +324,21 @@ pub fn run(
             "the training split is empty",
         ));
     }
-    let (rays, colours) = training_rays(scene);
+    let (rays, colours, depths) = training_rays(scene);
+    let depths = match (cfg.depth_weight > 0.0, depths) {
+        (false, _) => None,
+        (true, Some(d)) => Some(d),
+        (true, None) => {
+            return Err(EngineError::config(
+                "nerf_pretrain.depth_weight",
+                format!(
+                    "is {} but no training frame of {} has a depth map (frames[].depth_file_path)",
+                    cfg.depth_weight,
+                    scene.root.display()
+                ),
+            ))
+        }
+    };
     let mut rng = Rng::new(cfg.seed);
     let mut field = RadianceField::new(cfg.field, FieldSpace::for_scene(scene), &mut rng, device)?;
     let threshold = sigma_threshold(&field, &rays, cfg);
@@ -345,6 +406,12 @@ pub fn run(
         }
         if let (true, Some((sigma, packed))) = (learned && cfg.distortion > 0.0, &out.samples) {
             loss = (loss + (distortion_loss(sigma, packed)? * cfg.distortion)?)?;
+        }
+        if let Some(depths) = &depths {
+            let known: Vec<f32> = idx.iter().map(|&i| depths[i]).collect();
+            if let Some(l) = depth_loss(&out.depth, &out.opacity, &known)? {
+                loss = (loss + (l * cfg.depth_weight)?)?;
+            }
         }
         let grads = loss.backward()?;
         adam.step(&grads, schedule.at(step))?;
@@ -570,4 +637,25 @@ fn evaluate(
         empty_opacity: depth.empty_opacity(),
         opacity: (pixels > 0).then(|| opacity / pixels as f64),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Tensor;
+
+    #[test]
+    fn the_depth_loss_counts_only_rays_with_a_known_depth() {
+        let dev = Device::Cpu;
+        let depth = Tensor::new(&[1.0f32, 5.0, 3.0], &dev).unwrap();
+        let opacity = Tensor::new(&[0.5f32, 0.1, 1.0], &dev).unwrap();
+        // Ray 0: (1/2 − 1)² + (1 − 0.5)² = 0.5; ray 1 unknown; ray 2: (3/2 − 1)² + 0 = 0.25.
+        let loss = depth_loss(&depth, &opacity, &[2.0, 0.0, 2.0])
+            .unwrap()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!((loss - 0.375).abs() < 1e-6, "{loss}");
+        assert!(depth_loss(&depth, &opacity, &[0.0; 3]).unwrap().is_none());
+    }
 }
