@@ -121,6 +121,48 @@ fn photos_of_a_generated_turntable_get_the_generators_poses_and_a_stopped_run_re
     assert_eq!(loaded.frames.len(), report.registered);
     assert_eq!(loaded.resolution(), (128, 128));
     assert!(loaded.unbounded, "a capture with a room is unbounded");
+
+    // Each frame has a sparse depth map from the points it observes, in the model's units:
+    // scaled by the similarity that maps the recovered cameras onto the generator's, it is the
+    // generator's depth at those pixels.
+    let truth = Scene::load(
+        &scene,
+        &LoadOptions {
+            max_side: Some(128),
+            ..LoadOptions::default()
+        },
+    )
+    .unwrap();
+    let truth_of = |name: &str| truth.frames.iter().find(|f| f.name == name).unwrap();
+    let (from, to): (Vec<_>, Vec<_>) = loaded
+        .frames
+        .iter()
+        .map(|f| (f.camera.position, truth_of(&f.name).camera.position))
+        .map(|(a, b)| (a.as_dvec3(), b.as_dvec3()))
+        .unzip();
+    let scale = align::similarity(&from, &to).unwrap().scale as f32;
+    let mut relative = Vec::new();
+    for frame in &loaded.frames {
+        let (sparse, dense) = (
+            frame.depth.as_ref().unwrap(),
+            truth_of(&frame.name).depth.as_ref().unwrap(),
+        );
+        relative.extend(
+            sparse
+                .iter()
+                .zip(dense)
+                .filter(|(s, t)| **s > 0.0 && **t > 0.0)
+                .map(|(s, t)| (s * scale - t).abs() / t),
+        );
+    }
+    relative.sort_by(f32::total_cmp);
+    let per_frame = relative.len() / loaded.frames.len();
+    let median = relative[relative.len() / 2];
+    eprintln!("sparse depth: {per_frame} points per frame, median relative error {median}");
+    assert!(
+        per_frame > 50 && median < 0.02,
+        "{per_frame} points per frame, median {median}"
+    );
 }
 
 #[test]

@@ -1,22 +1,26 @@
 //! Writing a sparse model as a nerfstudio dataset: the registered images at the working
-//! resolution (intrinsics scaled to match) and a `transforms.json` with COLMAP's camera model
-//! and distortion, camera-to-world poses in OpenGL axes.
+//! resolution (intrinsics scaled to match), a sparse depth map per image (the z-depth of each
+//! sparse point the image observes, at the pixel it observes it; 0 elsewhere, as nerfstudio's
+//! `create_sfm_depth` writes them: what `nerf_pretrain.depth_weight` trains on, and what grades
+//! the field's depth on test views) and a `transforms.json` with COLMAP's camera model and
+//! distortion, camera-to-world poses in OpenGL axes.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
+use glam::DVec3;
 use image::imageops::FilterType;
 use rayon::prelude::*;
 use serde_json::{json, Map, Value};
 
-use super::model::{ColmapCamera, SparseModel};
+use super::model::{ColmapCamera, ColmapImage, SparseModel};
 use crate::camera::Intrinsics;
 use crate::checkpoint::{write_atomic, write_json_atomic};
 use crate::scene::{working_intrinsics, LoadOptions};
 use crate::{EngineError, Result};
 
-/// Writes `model`'s registered images from `images` into `out/images/` and
-/// `out/transforms.json`. `sharpness` (by image name) is recorded per frame when known.
+/// Writes `model`'s registered images from `images` into `out/images/`, their sparse depth
+/// maps into `out/depths/` and `out/transforms.json`. `sharpness` (by image name) is recorded per frame when known.
 /// Returns the written resolution of the first camera.
 pub fn write(
     model: &SparseModel,
@@ -38,6 +42,28 @@ pub fn write(
         let cam = &scaled[&img.camera];
         resize_into(&images.join(&img.name), &image_dir.join(&img.name), cam)
     })?;
+    let positions: HashMap<u64, DVec3> = model.points.iter().map(|p| (p.id, p.position)).collect();
+    let depths: Vec<Vec<f32>> = frames
+        .iter()
+        .map(|img| {
+            sparse_depth(
+                img,
+                &model.cameras[&img.camera],
+                &scaled[&img.camera],
+                &positions,
+            )
+        })
+        .collect();
+    // One unit for every map, so the farthest point fits in 16 bits.
+    let farthest = depths.iter().flatten().fold(0f32, |m, &d| m.max(d));
+    let unit = (farthest as f64 / f64::from(u16::MAX)).max(1e-6);
+    frames
+        .par_iter()
+        .zip(&depths)
+        .try_for_each(|(img, depth)| {
+            let cam = &scaled[&img.camera];
+            write_depth(&out.join(depth_path(img)), cam, depth, unit)
+        })?;
 
     let distorted = scaled
         .values()
@@ -47,6 +73,7 @@ pub fn write(
         "camera_model".into(),
         json!(if distorted { "OPENCV" } else { "PINHOLE" }),
     );
+    top.insert("depth_unit_scale_factor".into(), json!(unit));
     let single = scaled.len() == 1;
     if single {
         intrinsics(&mut top, scaled.values().next().expect("one camera"));
@@ -56,6 +83,7 @@ pub fn write(
         .map(|img| {
             let mut f = Map::new();
             f.insert("file_path".into(), json!(format!("images/{}", img.name)));
+            f.insert("depth_file_path".into(), json!(depth_path(img)));
             let (r, p) = (img.rotation, img.position);
             f.insert(
                 "transform_matrix".into(),
@@ -132,6 +160,69 @@ fn scale_camera(c: &ColmapCamera, max_side: u32) -> ColmapCamera {
     }
 }
 
+/// Where an image's sparse depth map is written, relative to the dataset.
+fn depth_path(img: &ColmapImage) -> String {
+    format!("depths/{}.png", img.name)
+}
+
+/// The z-depth (model units) of each sparse point `img` observes, at the pixel of the
+/// `scaled` camera it observes it at (the nearest point where two share a pixel; 0 where none
+/// is, and for points behind the camera). `camera` is the model's camera, whose pixels the
+/// observations are in.
+fn sparse_depth(
+    img: &ColmapImage,
+    camera: &ColmapCamera,
+    scaled: &ColmapCamera,
+    positions: &HashMap<u64, DVec3>,
+) -> Vec<f32> {
+    let (w, h) = (scaled.width as usize, scaled.height as usize);
+    let (sx, sy) = (
+        scaled.width as f64 / camera.width as f64,
+        scaled.height as f64 / camera.height as f64,
+    );
+    // OpenGL axes: the camera looks down its −z.
+    let forward = -img.rotation.z_axis;
+    let mut depth = vec![0f32; w * h];
+    for o in &img.observations {
+        let Some(&p) = positions.get(&o.point) else {
+            continue;
+        };
+        let z = (p - img.position).dot(forward) as f32;
+        let (x, y) = ((o.pixel[0] * sx).floor(), (o.pixel[1] * sy).floor());
+        if z <= 0.0 || x < 0.0 || y < 0.0 || x >= w as f64 || y >= h as f64 {
+            continue;
+        }
+        let d = &mut depth[y as usize * w + x as usize];
+        if *d == 0.0 || z < *d {
+            *d = z;
+        }
+    }
+    depth
+}
+
+/// Writes a depth map as a 16-bit PNG of `depth / unit` (a known depth never rounds to 0).
+fn write_depth(to: &Path, cam: &ColmapCamera, depth: &[f32], unit: f64) -> Result<()> {
+    let values: Vec<u16> = depth
+        .iter()
+        .map(|&d| match d > 0.0 {
+            true => (d as f64 / unit).round().clamp(1.0, f64::from(u16::MAX)) as u16,
+            false => 0,
+        })
+        .collect();
+    let img = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(cam.width, cam.height, values)
+        .expect("a map of the camera's size");
+    let mut bytes = Vec::new();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| EngineError::artifact(to, format!("cannot encode: {e}")))?;
+    if let Some(dir) = to.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| EngineError::io(dir, e))?;
+    }
+    write_atomic(to, &bytes)
+}
+
 /// Writes `from` at the camera's size to `to` (copied when already that size), atomically.
 fn resize_into(from: &Path, to: &Path, cam: &ColmapCamera) -> Result<()> {
     let img = image::open(from).map_err(|e| {
@@ -186,5 +277,48 @@ mod tests {
         };
         let s = scale_camera(&small, 480);
         assert_eq!((s.width, s.height), (200, 100));
+    }
+
+    #[test]
+    fn sparse_depth_puts_each_observed_point_at_its_pixel_nearest_first() {
+        use super::super::model::Observation;
+        let camera = ColmapCamera {
+            width: 64,
+            height: 48,
+            fx: 50.0,
+            fy: 50.0,
+            cx: 32.0,
+            cy: 24.0,
+            distortion: [0.0; 4],
+        };
+        let scaled = scale_camera(&camera, 32);
+        assert_eq!((scaled.width, scaled.height), (32, 24));
+        // A camera at (1, 0, 0) with OpenGL axes looking down world −z.
+        let seen = |pixel, point| Observation { pixel, point };
+        let img = ColmapImage {
+            name: "a.jpg".into(),
+            camera: 1,
+            rotation: glam::DMat3::IDENTITY,
+            position: DVec3::new(1.0, 0.0, 0.0),
+            observations: vec![
+                seen([10.5, 20.5], 1),
+                seen([11.0, 21.9], 2),
+                seen([40.2, 7.7], 3),
+                seen([3.0, 3.0], 4),
+                seen([5.0, 5.0], 99),
+            ],
+        };
+        let positions = HashMap::from([
+            (1, DVec3::new(1.2, 0.1, -3.0)),
+            (2, DVec3::new(0.9, 0.0, -2.0)),
+            (3, DVec3::new(5.0, 5.0, -7.5)),
+            (4, DVec3::new(1.0, 0.0, 2.0)),
+        ]);
+        let depth = sparse_depth(&img, &camera, &scaled, &positions);
+        // Points 1 and 2 share pixel (5, 10) at half size: the nearer (z = 2) is kept.
+        assert_eq!(depth[10 * 32 + 5], 2.0);
+        assert_eq!(depth[3 * 32 + 20], 7.5);
+        // Point 4 is behind the camera and point 99 is not in the model.
+        assert_eq!(depth.iter().filter(|&&d| d > 0.0).count(), 2);
     }
 }

@@ -1,7 +1,7 @@
 //! COLMAP's sparse model in its text form (`cameras.txt`, `images.txt`, `points3D.txt`, as
 //! `colmap model_converter --output_type TXT` writes them), read into cameras with their
-//! intrinsics and distortion, registered images with camera-to-world poses in OpenGL axes, and
-//! the sparse points.
+//! intrinsics and distortion, registered images with camera-to-world poses in OpenGL axes and
+//! the sparse points each observes, and the sparse points.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -32,11 +32,22 @@ pub struct ColmapImage {
     pub rotation: DMat3,
     /// Camera centre in world space.
     pub position: DVec3,
+    /// The sparse points this image observes, where it observes them.
+    pub observations: Vec<Observation>,
+}
+
+/// A sparse point seen in an image: the pixel position of the keypoint (COLMAP's, pixel centres
+/// at +0.5) and the point's `POINT3D_ID`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Observation {
+    pub pixel: [f64; 2],
+    pub point: u64,
 }
 
 /// One sparse point with its mean reprojection error in pixels.
 #[derive(Debug, Clone, Copy)]
 pub struct ColmapPoint {
+    pub id: u64,
     pub position: DVec3,
     pub error: f64,
 }
@@ -59,16 +70,24 @@ impl SparseModel {
         .collect::<BTreeMap<_, _>>();
         // images.txt alternates a pose line and a line of 2D points.
         let mut pose_line = true;
-        let images = read_lines(&dir.join("images.txt"), |file, line| {
+        let lines = read_lines(&dir.join("images.txt"), |file, line| {
             let is_pose = pose_line;
             pose_line = !pose_line;
-            if !is_pose {
-                return Ok(None);
+            match is_pose {
+                true => image(line).map(ImageLine::Pose),
+                false => observations(line).map(ImageLine::Points),
             }
-            image(line)
-                .map(Some)
-                .map_err(|r| EngineError::dataset(file, "image", r))
+            .map(Some)
+            .map_err(|r| EngineError::dataset(file, "image", r))
         })?;
+        let mut images: Vec<ColmapImage> = Vec::new();
+        for line in lines {
+            match (line, images.last_mut()) {
+                (ImageLine::Pose(image), _) => images.push(image),
+                (ImageLine::Points(points), Some(image)) => image.observations = points,
+                (ImageLine::Points(_), None) => unreachable!("a points line follows a pose line"),
+            }
+        }
         let points = read_lines(&dir.join("points3D.txt"), |file, line| {
             point(line)
                 .map(Some)
@@ -96,6 +115,12 @@ impl SparseModel {
         let n = self.points.len().max(1) as f64;
         self.points.iter().map(|p| p.error).sum::<f64>() / n
     }
+}
+
+/// A line of `images.txt`.
+enum ImageLine {
+    Pose(ColmapImage),
+    Points(Vec<Observation>),
 }
 
 /// Reads the non-comment lines of `file` through `parse` (line numbers in errors).
@@ -226,7 +251,33 @@ fn image(line: &str) -> std::result::Result<ColmapImage, String> {
             .map_err(|_| format!("bad camera id `{}`", f[8]))?,
         rotation: to_world * flip,
         position: -(to_world * t),
+        observations: Vec::new(),
     })
+}
+
+/// `POINTS2D[]` as `(X, Y, POINT3D_ID)`: the keypoints with a sparse point (an id of −1 has
+/// none).
+fn observations(line: &str) -> std::result::Result<Vec<Observation>, String> {
+    let f: Vec<&str> = line.split_whitespace().collect();
+    if !f.len().is_multiple_of(3) {
+        return Err(format!(
+            "expected `X Y POINT3D_ID` triples, found {} fields",
+            f.len()
+        ));
+    }
+    f.chunks_exact(3)
+        .filter(|t| t[2] != "-1")
+        .map(|t| {
+            let xy = numbers(&t[..2])?;
+            let point = t[2]
+                .parse()
+                .map_err(|_| format!("bad POINT3D_ID `{}`", t[2]))?;
+            Ok(Observation {
+                pixel: [xy[0], xy[1]],
+                point,
+            })
+        })
+        .collect()
 }
 
 /// `POINT3D_ID X Y Z R G B ERROR TRACK[]`.
@@ -239,6 +290,9 @@ fn point(line: &str) -> std::result::Result<ColmapPoint, String> {
     }
     let v = numbers(&f[1..8])?;
     Ok(ColmapPoint {
+        id: f[0]
+            .parse()
+            .map_err(|_| format!("bad POINT3D_ID `{}`", f[0]))?,
         position: DVec3::new(v[0], v[1], v[2]),
         error: v[6],
     })
@@ -260,7 +314,7 @@ mod tests {
         // rotation, t = -R c = (0, 0, 5).
         std::fs::write(
             dir.path().join("images.txt"),
-            "# Image list\n1 1 0 0 0 0 0 5 1 photo one.jpg\n10.0 20.0 -1\n",
+            "# Image list\n1 1 0 0 0 0 0 5 1 photo one.jpg\n10.0 20.0 -1 30.5 40.25 2\n",
         )
         .unwrap();
         std::fs::write(
@@ -283,6 +337,15 @@ mod tests {
         // COLMAP's y is down; OpenGL's up is world −y here.
         assert!((img.rotation.y_axis + DVec3::Y).length() < 1e-12);
         assert!((m.mean_reprojection_error() - 1.0).abs() < 1e-12);
+        // Keypoints without a sparse point are left out.
+        assert_eq!(
+            img.observations,
+            [Observation {
+                pixel: [30.5, 40.25],
+                point: 2
+            }]
+        );
+        assert_eq!(m.points[1].id, 2);
     }
 
     #[test]

@@ -111,17 +111,65 @@ pub(crate) fn resize_rgb(img: &Rgb32FImage, width: u32, height: u32) -> Rgb32FIm
 }
 
 /// Resizes a depth map by nearest sampling, so that no depth is invented between surfaces.
+/// Where the nearest source pixel's depth is unknown (0), the smallest known depth (the nearest
+/// surface) in the source block the output pixel covers is taken instead: shrinking a sparse map (points from
+/// structure from motion, the `poses` stage's) by nearest sampling alone would drop most of its
+/// points.
 pub(crate) fn resize_depth(depth: &[f32], w: u32, h: u32, width: u32, height: u32) -> Vec<f32> {
     if (w, h) == (width, height) {
         return depth.to_vec();
     }
+    // The source rows (or columns) output row `i` of `n` covers, and its centre's.
+    let block = |i: u32, n: u32, src: u32| {
+        let start = ((i as u64 * src as u64) / n as u64) as u32;
+        let end = ((((i + 1) as u64 * src as u64) / n as u64) as u32).max(start + 1);
+        let centre = (((i as f32 + 0.5) * src as f32 / n as f32) as u32).min(src - 1);
+        (start..end.min(src), centre)
+    };
     let mut out = Vec::with_capacity((width * height) as usize);
     for y in 0..height {
-        let sy = (((y as f32 + 0.5) * h as f32 / height as f32) as u32).min(h - 1);
+        let (rows, sy) = block(y, height, h);
         for x in 0..width {
-            let sx = (((x as f32 + 0.5) * w as f32 / width as f32) as u32).min(w - 1);
-            out.push(depth[(sy * w + sx) as usize]);
+            let (cols, sx) = block(x, width, w);
+            let centre = depth[(sy * w + sx) as usize];
+            if centre > 0.0 {
+                out.push(centre);
+                continue;
+            }
+            let nearest_known = rows
+                .clone()
+                .flat_map(|r| cols.clone().map(move |c| depth[(r * w + c) as usize]))
+                .filter(|&d| d > 0.0)
+                .fold(f32::INFINITY, f32::min);
+            out.push(if nearest_known.is_finite() {
+                nearest_known
+            } else {
+                0.0
+            });
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shrinking_a_depth_map_samples_the_centre_and_keeps_sparse_points() {
+        // 4×4 → 2×2: each output pixel covers a 2×2 block whose centre sample is its
+        // bottom-right pixel.
+        let dense: Vec<f32> = (1..=16).map(|v| v as f32).collect();
+        assert_eq!(resize_depth(&dense, 4, 4, 2, 2), [6.0, 8.0, 14.0, 16.0]);
+        // Sparse: one block holds two points off its centre (the nearer is kept), one a point
+        // at its centre, one nothing.
+        let mut sparse = vec![0.0; 16];
+        sparse[0] = 3.0;
+        sparse[4] = 2.5;
+        sparse[7] = 9.0;
+        sparse[15] = 4.0;
+        assert_eq!(resize_depth(&sparse, 4, 4, 2, 2), [2.5, 9.0, 0.0, 4.0]);
+        // Growing samples the nearest pixel, as before.
+        assert_eq!(resize_depth(&[1.0, 0.0], 2, 1, 4, 1), [1.0, 1.0, 0.0, 0.0]);
+    }
 }
