@@ -2,10 +2,17 @@
 //! views, `render_views` on the training views it carries the truth onto.
 //!
 //! Pixels where the truth sees a surface and the render is opaque (> 0.5) are graded: absolute
-//! error, and the error relative to the true depth. Pixels where the truth sees nothing
-//! (depth 0: a background at infinity) measure the opacity the field left there (haze).
+//! error, and the error relative to the true depth. Pixels where a dense map sees nothing
+//! (depth 0: a background at infinity) measure the opacity the field left there (haze); in a
+//! sparse map (under [`DENSE`] of its pixels known: points from structure from motion) a 0 is
+//! only unknown, and measures nothing.
 
 use serde::{Deserialize, Serialize};
+
+/// The fraction of known pixels from which a depth map's zeros are taken as a background at
+/// infinity (a generated sky is under half of a view; structure from motion knows a few
+/// percent of the pixels).
+pub const DENSE: f64 = 0.1;
 
 /// Running tallies over the frames of one evaluation.
 #[derive(Debug, Default)]
@@ -34,11 +41,13 @@ pub struct DepthSummary {
 impl DepthErrors {
     /// Adds one frame: rendered depth and opacity and the true depth, row-major alike.
     pub fn add(&mut self, depth: &[f32], opacity: &[f32], truth: &[f32]) {
+        let known = truth.iter().filter(|&&g| g > 0.0).count();
+        let dense = known as f64 >= DENSE * truth.len() as f64;
         for ((d, o), g) in depth.iter().zip(opacity).zip(truth) {
             if *o > 0.5 && *g > 0.0 {
                 self.abs_sum += f64::from((d - g).abs());
                 self.relative.push(((d - g) / g).abs());
-            } else if *g == 0.0 {
+            } else if *g == 0.0 && dense {
                 self.empty_opacity += f64::from(*o);
                 self.empty += 1;
             }
@@ -91,5 +100,12 @@ mod tests {
         assert!((s.p90_relative - 0.1).abs() < 1e-6, "{s:?}");
         assert_eq!(s.over_5_percent, 0.25);
         assert!((e.empty_opacity().unwrap() - 0.2).abs() < 1e-6);
+        // A sparse map's zeros are unknown, not empty: graded where known, no haze counted.
+        let mut sparse = DepthErrors::default();
+        let mut truth = vec![0.0; 20];
+        truth[3] = 2.0;
+        sparse.add(&[2.0; 20], &[1.0; 20], &truth);
+        assert_eq!(sparse.summary().unwrap().pixels, 1);
+        assert_eq!(sparse.empty_opacity(), None);
     }
 }
