@@ -1,9 +1,10 @@
-//! Small helpers between f32 pixel buffers and image files: saving RGB previews atomically,
-//! colour-mapping depth, and loading style/content images as linear [0, 1] RGB.
+//! Small helpers between f32 pixel buffers and image files: saving RGB previews and 16-bit
+//! depth maps atomically, colour-mapping depth, and loading style/content images as linear
+//! [0, 1] RGB.
 
 use std::path::{Path, PathBuf};
 
-use image::{Rgb, Rgb32FImage, RgbImage};
+use image::{EncodableLayout, ImageBuffer, Luma, PixelWithColorType, Rgb, Rgb32FImage, RgbImage};
 
 use crate::{EngineError, Result};
 
@@ -43,6 +44,36 @@ pub fn save_rgb_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result
 
 /// Saves an 8-bit RGB image as a PNG atomically.
 pub fn save_png(path: &Path, img: &RgbImage) -> Result<()> {
+    save_png_of(path, img)
+}
+
+/// Saves a z-depth map (row-major, world units, 0 = unknown) as a 16-bit grayscale PNG of
+/// `depth / unit`, atomically, as nerfstudio reads them (`depth_unit_scale_factor` = `unit`).
+/// A known depth never rounds to 0; depths past `65535 · unit` are clipped there.
+pub fn save_depth_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    depth: &[f32],
+    unit: f64,
+) -> Result<()> {
+    let values: Vec<u16> = depth
+        .iter()
+        .map(|&d| match d > 0.0 {
+            true => (d / unit as f32).round().clamp(1.0, f32::from(u16::MAX)) as u16,
+            false => 0,
+        })
+        .collect();
+    let img = ImageBuffer::<Luma<u16>, _>::from_raw(width, height, values)
+        .expect("buffer length matches the image size");
+    save_png_of(path, &img)
+}
+
+fn save_png_of<P>(path: &Path, img: &ImageBuffer<P, Vec<P::Subpixel>>) -> Result<()>
+where
+    P: PixelWithColorType,
+    [P::Subpixel]: EncodableLayout,
+{
     let mut bytes = Vec::new();
     img.write_to(
         &mut std::io::Cursor::new(&mut bytes),

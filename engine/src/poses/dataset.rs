@@ -16,12 +16,13 @@ use serde_json::{json, Map, Value};
 use super::model::{ColmapCamera, ColmapImage, SparseModel};
 use crate::camera::Intrinsics;
 use crate::checkpoint::{write_atomic, write_json_atomic};
+use crate::image_io::save_depth_png;
 use crate::scene::{working_intrinsics, LoadOptions};
 use crate::{EngineError, Result};
 
 /// Writes `model`'s registered images from `images` into `out/images/`, their sparse depth
-/// maps into `out/depths/` and `out/transforms.json`. `sharpness` (by image name) is recorded per frame when known.
-/// Returns the written resolution of the first camera.
+/// maps into `out/depths/` and `out/transforms.json`. `sharpness` (by image name) is recorded
+/// per frame when known. Returns the written resolution of the first camera.
 pub fn write(
     model: &SparseModel,
     images: &Path,
@@ -57,12 +58,20 @@ pub fn write(
     // One unit for every map, so the farthest point fits in 16 bits.
     let farthest = depths.iter().flatten().fold(0f32, |m, &d| m.max(d));
     let unit = (farthest as f64 / f64::from(u16::MAX)).max(1e-6);
+    let depth_dir = out.join("depths");
+    std::fs::create_dir_all(&depth_dir).map_err(|e| EngineError::io(&depth_dir, e))?;
     frames
         .par_iter()
         .zip(&depths)
         .try_for_each(|(img, depth)| {
             let cam = &scaled[&img.camera];
-            write_depth(&out.join(depth_path(img)), cam, depth, unit)
+            save_depth_png(
+                &out.join(depth_path(img)),
+                cam.width,
+                cam.height,
+                depth,
+                unit,
+            )
         })?;
 
     let distorted = scaled
@@ -198,29 +207,6 @@ fn sparse_depth(
         }
     }
     depth
-}
-
-/// Writes a depth map as a 16-bit PNG of `depth / unit` (a known depth never rounds to 0).
-fn write_depth(to: &Path, cam: &ColmapCamera, depth: &[f32], unit: f64) -> Result<()> {
-    let values: Vec<u16> = depth
-        .iter()
-        .map(|&d| match d > 0.0 {
-            true => (d as f64 / unit).round().clamp(1.0, f64::from(u16::MAX)) as u16,
-            false => 0,
-        })
-        .collect();
-    let img = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(cam.width, cam.height, values)
-        .expect("a map of the camera's size");
-    let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        image::ImageFormat::Png,
-    )
-    .map_err(|e| EngineError::artifact(to, format!("cannot encode: {e}")))?;
-    if let Some(dir) = to.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| EngineError::io(dir, e))?;
-    }
-    write_atomic(to, &bytes)
 }
 
 /// Writes `from` at the camera's size to `to` (copied when already that size), atomically.

@@ -13,7 +13,7 @@ mod world;
 use std::path::Path;
 
 use glam::Vec3;
-use image::{ImageBuffer, Luma, RgbImage};
+use image::RgbImage;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
@@ -21,6 +21,7 @@ use serde_json::{json, Value};
 use super::npy::{self, Matrix};
 use super::{bounds, Aabb};
 use crate::camera::{Camera, Intrinsics};
+use crate::image_io::save_depth_png;
 use crate::{EngineError, Result};
 pub use world::Surroundings;
 use world::{View, World, BACKGROUND};
@@ -274,20 +275,11 @@ fn write_view(out: &Path, i: usize, camera: &Camera, view: &View, depth_scale: f
     let (w, h) = (camera.intrinsics.width, camera.intrinsics.height);
     let bytes = view.rgb.iter().map(|v| (v * 255.0).round() as u8).collect();
     let rgb = RgbImage::from_raw(w, h, bytes).expect("buffer matches the image size");
-    let raw = view
-        .depth
-        .iter()
-        .map(|d| (d / depth_scale).round().min(u16::MAX as f32) as u16)
-        .collect();
-    let depth: ImageBuffer<Luma<u16>, Vec<u16>> =
-        ImageBuffer::from_raw(w, h, raw).expect("buffer matches the image size");
     let rgb_path = out.join("images").join(frame_name(i));
     rgb.save(&rgb_path)
         .map_err(|e| EngineError::artifact(&rgb_path, e.to_string()))?;
     let depth_path = out.join("depths").join(frame_name(i));
-    depth
-        .save(&depth_path)
-        .map_err(|e| EngineError::artifact(&depth_path, e.to_string()))
+    save_depth_png(&depth_path, w, h, &view.depth, f64::from(depth_scale))
 }
 
 /// LLFF `poses_bounds.npy`: [down, right, back, position, (h, w, f)] rows and per-view
