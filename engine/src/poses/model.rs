@@ -360,5 +360,17 @@ mod tests {
             "{err}"
         );
         assert!(err.contains("FISHEYE is not supported"), "{err}");
+        // A line of 2D points that is not whole triples.
+        std::fs::write(dir.path().join("cameras.txt"), "1 PINHOLE 10 10 5 5 5 5\n").unwrap();
+        std::fs::write(
+            dir.path().join("images.txt"),
+            "1 1 0 0 0 0 0 5 1 a.jpg\n10.0 20.0 3 4.0\n",
+        )
+        .unwrap();
+        let err = SparseModel::read(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("images.txt") && err.contains("line 2") && err.contains("triples"),
+            "{err}"
+        );
     }
 }
