@@ -1,8 +1,9 @@
 //! `stylenerf bench chaos`: the service under fire. A coordinator and workers run as separate
 //! processes of this binary on loopback (real SQLite file, real object store folder, the real
 //! engine on the `tiny` preset); jobs are submitted while processes are killed with SIGKILL at
-//! random moments — workers, and the coordinator (once, while a stage runs, with an outage of
-//! eight seconds, so that stages finish while it is away) — and restarted; one worker kill is
+//! random moments — workers, and the coordinator (once, while a live worker holds a stage, with
+//! an outage of eight seconds, so that stages finish while it is away; repeated, twice at most,
+//! when no worker had to retry through it) — and restarted; one worker kill is
 //! aimed, at the first worker seen holding a task with a checkpoint in the store. At the end every
 //! acknowledged job must exist and have succeeded, each of its stages must have succeeded
 //! exactly once (its event log), and a killed worker must have run at most one checkpoint
@@ -54,6 +55,9 @@ pub struct BenchChaosArgs {
 /// Steps between checkpoints of the workers: the most a kill may cost, with upload lag.
 const CHECKPOINT_EVERY: u64 = 5;
 
+/// The workers' JSON log, in the run's folder (all workers append to it).
+const WORKERS_LOG: &str = "workers.log";
+
 /// What a run found.
 #[derive(Debug, Default, Serialize)]
 pub struct ChaosReport {
@@ -76,6 +80,9 @@ pub struct ChaosReport {
     pub resumed_from_store: usize,
     /// Coordinator calls the workers retried through outages, by call (from their logs).
     pub retried_calls: BTreeMap<String, usize>,
+    /// Long outages that no worker retried through (its stage had just ended) and that were
+    /// therefore repeated.
+    pub outages_missed: usize,
     pub wall_secs: f64,
     /// Objects in the artifact store at the end, by kind (`uploads`, `checkpoints`,
     /// `outputs`): where inputs, checkpoints and results went.
@@ -211,7 +218,7 @@ impl Cluster {
         .iter()
         .map(|s| s.to_string())
         .collect();
-        let process = Process::spawn(&args, &self.dir.join("workers.log"))?;
+        let process = Process::spawn(&args, &self.dir.join(WORKERS_LOG))?;
         self.workers.push((id, process));
         Ok(())
     }
@@ -323,6 +330,7 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
         .unwrap_or_else(|| dir.join("store").display().to_string());
     let store = Storage::open(&storage)?;
     let mut cluster = Cluster::start(&dir, &storage, args.workers.max(1))?;
+    let workers_log = dir.join(WORKERS_LOG);
     let mut rng = Rng::new(args.seed);
     let mut report = ChaosReport::default();
     let mut acknowledged: Vec<String> = Vec::new();
@@ -388,10 +396,13 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
         // Once, as soon as a stage runs, a long outage: the stage finishes (or checkpoints)
         // while the coordinator is away, and its worker retries until it is back.
         let outage = !outage_done && !acknowledged.is_empty();
+        let mut retries_before = 0;
         if outage || rng.below(5) == 0 {
             if outage {
+                // Busy: a live worker holds a task (a killed worker's task stays leased until
+                // its lease expires, and nobody would retry for it).
                 let busy = match Client::connect(&cluster.endpoint, None).await {
-                    Ok(client) => leased_any(&client, &acknowledged).await,
+                    Ok(client) => cluster_busy(&client, &cluster, &acknowledged).await,
                     Err(_) => false,
                 };
                 // (When every job is done, nothing will be leased again: go ahead anyway.)
@@ -400,6 +411,7 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
                     continue;
                 }
                 outage_done = true;
+                retries_before = retried_calls(&workers_log).values().sum();
             }
             cluster.coordinator.kill();
             report.coordinator_kills += 1;
@@ -411,6 +423,14 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
             tokio::time::sleep(away).await;
             report.longest_outage_secs = report.longest_outage_secs.max(away.as_secs_f64());
             cluster.restart_coordinator()?;
+            // The stage may have ended just before the kill: then nobody retried, and the
+            // outage is tried again (twice at most) while kills are left.
+            let retries_after: usize = retried_calls(&workers_log).values().sum();
+            if outage && retries_after == retries_before && report.outages_missed < 2 {
+                report.outages_missed += 1;
+                outage_done = false;
+                outage_waits = 0;
+            }
         } else {
             let victim = rng.below(cluster.workers.len());
             kill_worker(&mut cluster, victim, &acknowledged, &store, &mut losses).await?;
@@ -465,7 +485,7 @@ async fn chaos(args: &BenchChaosArgs) -> anyhow::Result<ChaosReport> {
         .map(|l| l.step.saturating_sub(l.local))
         .max()
         .unwrap_or(0);
-    report.retried_calls = retried_calls(&dir.join("workers.log"));
+    report.retried_calls = retried_calls(&workers_log);
     report.stored_objects = stored_objects(&store).await?;
     report.wall_secs = started.elapsed().as_secs_f64();
     drop(cluster);
@@ -607,13 +627,11 @@ async fn check_stages_once(
     Ok(())
 }
 
-/// Whether any task of `jobs` is leased now.
-async fn leased_any(client: &Client, jobs: &[String]) -> bool {
-    for job in jobs {
-        if let Ok(job) = client.get(job).await {
-            if job.tasks.iter().any(|t| t.state() == pb::TaskState::Leased) {
-                return true;
-            }
+/// Whether a live worker of `cluster` holds a task of `jobs` now.
+async fn cluster_busy(client: &Client, cluster: &Cluster, jobs: &[String]) -> bool {
+    for (id, _) in &cluster.workers {
+        if !leased_by(client, jobs, id).await.is_empty() {
+            return true;
         }
     }
     false
