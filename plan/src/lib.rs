@@ -17,6 +17,6 @@ pub mod settings;
 pub mod stage;
 
 pub use preset::Preset;
-pub use scene_format::{find_scene, SceneFormat};
+pub use scene_format::{find_scene, DatasetFacts, SceneFormat};
 pub use settings::{Override, SettingError};
 pub use stage::{Source, Stage, StageInputs};

@@ -1,7 +1,8 @@
 //! The dataset formats and the one rule for finding a scene in an upload, shared by the
 //! coordinator (which sees archive member paths), the worker (which sees the unpacked folder)
 //! and the engine's loaders (which name the same marker files); and the same for the photos of
-//! an upload of plain photos ([`find_photos`]).
+//! an upload of plain photos ([`find_photos`]); and what the coordinator keeps of a loaded
+//! dataset for the submission checks that depend on it ([`DatasetFacts`]).
 
 use serde::{Deserialize, Serialize};
 
@@ -15,6 +16,14 @@ pub enum SceneFormat {
     Blender,
     /// LLFF `poses_bounds.npy` + `images/` (forward-facing, NDC rays).
     Llff,
+}
+
+/// What the engine's loader found in a dataset that settings depend on: recorded with the
+/// upload, so that a job asking for what the dataset lacks is refused at submission.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct DatasetFacts {
+    /// Some training frame has a depth map (what `nerf_pretrain.depth_weight` trains on).
+    pub train_depth: bool,
 }
 
 /// Deepest folder, counted from the upload's root, that a scene is looked for in.

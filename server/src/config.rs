@@ -10,6 +10,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
+use stylenerf_plan::DatasetFacts;
 
 /// Everything a coordinator needs to start.
 #[derive(Debug, Clone)]
@@ -91,8 +92,18 @@ pub trait EngineChecks: Send + Sync {
     fn settings(&self, preset: &str, overrides: &Map<String, Value>) -> Vec<(String, String)>;
 
     /// Why the dataset archive (an uncompressed tar already checked for safety) at `archive`
-    /// would not load in a stage, if it would not. Runs on a blocking thread.
-    fn dataset(&self, archive: &Path) -> Result<(), String>;
+    /// would not load in a stage, if it would not; else what settings depend on in it. Runs on
+    /// a blocking thread.
+    fn dataset(&self, archive: &Path) -> Result<DatasetFacts, String>;
+
+    /// What a stage would refuse of a job's `(preset, overrides)`, already found valid by
+    /// [`EngineChecks::settings`], on a dataset with these facts, as `(field, reason)`.
+    fn dataset_settings(
+        &self,
+        preset: &str,
+        overrides: &Map<String, Value>,
+        dataset: &DatasetFacts,
+    ) -> Vec<(String, String)>;
 }
 
 impl std::fmt::Debug for dyn EngineChecks {

@@ -12,6 +12,7 @@ use crate::storage::check_sha256;
 use crate::validation::{validate_dataset_archive, validate_style_image};
 use futures::{Stream, StreamExt};
 use sha2::{Digest, Sha256};
+use stylenerf_plan::DatasetFacts;
 use stylenerf_proto::v1 as pb;
 use tokio::io::AsyncWriteExt;
 use tonic::Status;
@@ -54,32 +55,47 @@ impl InputKind {
 /// RGBA, 512 MiB), so this bounds the coordinator's memory under concurrent uploads.
 pub const CONCURRENT_VALIDATIONS: usize = 2;
 
-/// Validates a complete input file; returns a summary and the extension to store it with.
+/// What validating an input file found.
+struct Validated {
+    /// One line for the receipt.
+    summary: String,
+    /// The extension to store it with.
+    extension: &'static str,
+    /// A dataset's facts, when the engine's checks are installed.
+    facts: Option<DatasetFacts>,
+}
+
+/// Validates a complete input file.
 async fn validate_file(
     shared: &Shared,
     kind: InputKind,
     path: std::path::PathBuf,
-) -> Result<Result<(String, &'static str), String>, Status> {
+) -> Result<Result<Validated, String>, Status> {
     let limits = shared.config.limits.clone();
     let engine = shared.config.engine_checks.clone();
     let _slot = shared.validations.acquire().await.map_err(internal)?;
+    let plain = |summary: String, extension| Validated {
+        summary,
+        extension,
+        facts: None,
+    };
     tokio::task::spawn_blocking(move || match kind {
         InputKind::Dataset => {
             let file = std::fs::File::open(&path).map_err(|e| e.to_string())?;
             let summary = validate_dataset_archive(file, &limits)?;
-            if let Some(engine) = engine {
-                engine.dataset(&path)?;
-            }
-            Ok((summary.to_string(), "tar"))
+            let facts = engine.map(|engine| engine.dataset(&path)).transpose()?;
+            Ok(Validated {
+                facts,
+                ..plain(summary.to_string(), "tar")
+            })
         }
         InputKind::Style => {
             let bytes = std::fs::read(&path).map_err(|e| e.to_string())?;
             validate_style_image(&bytes, &limits)
-                .map(|summary| (summary.to_string(), summary.extension()))
+                .map(|summary| plain(summary.to_string(), summary.extension()))
         }
-        InputKind::Photos => {
-            validate_photos(&path, &limits).map(|summary| (summary.to_string(), summary.extension))
-        }
+        InputKind::Photos => validate_photos(&path, &limits)
+            .map(|summary| plain(summary.to_string(), summary.extension)),
     })
     .await
     .map_err(internal)
@@ -165,6 +181,7 @@ pub struct StoredUpload {
     key: String,
     filename: String,
     kind: InputKind,
+    facts: Option<DatasetFacts>,
 }
 
 impl StoredUpload {
@@ -176,7 +193,7 @@ impl StoredUpload {
     ) -> Result<pb::UploadReceipt, Status> {
         sqlx::query(
             "INSERT INTO uploads (id, owner, kind, key, filename, size, sha256, summary, \
-             created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+             created_at, train_depth) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(&self.receipt.upload_id)
         .bind(owner)
@@ -187,6 +204,7 @@ impl StoredUpload {
         .bind(&self.receipt.sha256)
         .bind(&self.receipt.summary)
         .bind(now_ms())
+        .bind(self.facts.map(|f| f.train_depth))
         .execute(db)
         .await
         .map_err(internal)?;
@@ -196,7 +214,11 @@ impl StoredUpload {
 
 /// Validates a received input and stores its object (the row is the caller's to insert).
 pub async fn store_upload(shared: &Shared, input: Received<'_>) -> Result<StoredUpload, Status> {
-    let (summary, extension) = validate_file(shared, input.kind, input.path.to_path_buf())
+    let Validated {
+        summary,
+        extension,
+        facts,
+    } = validate_file(shared, input.kind, input.path.to_path_buf())
         .await?
         .map_err(|why| invalid("data", why))?;
     let id = format!("u-{}", uuid::Uuid::now_v7().simple());
@@ -217,6 +239,7 @@ pub async fn store_upload(shared: &Shared, input: Received<'_>) -> Result<Stored
         key,
         filename: input.filename.to_string(),
         kind: input.kind,
+        facts,
     })
 }
 
@@ -377,16 +400,26 @@ where
     accept_spooled(shared, caller, kind, filename, (file, actual, received)).await
 }
 
-/// Resolves an `InputRef` to the object key of a validated input, the extension to copy it
-/// with and its kind: an upload of one of the `accepted` kinds, or an object validated as the
-/// first of them. `field` names the reference in errors.
+/// A job input found and validated.
+pub struct ResolvedInput {
+    /// Its object in the store.
+    pub key: String,
+    /// The extension to copy it with.
+    pub extension: String,
+    pub kind: InputKind,
+    /// A dataset's facts, when known (not for uploads from before they were recorded).
+    pub facts: Option<DatasetFacts>,
+}
+
+/// Resolves an `InputRef` to a validated input: an upload of one of the `accepted` kinds, or
+/// an object validated as the first of them. `field` names the reference in errors.
 pub async fn resolve_input(
     shared: &Shared,
     caller: &Principal,
     field: &str,
     accepted: &[InputKind],
     input: Option<&pb::InputRef>,
-) -> Result<(String, String, InputKind), Status> {
+) -> Result<ResolvedInput, Status> {
     let kind = accepted[0];
     use pb::input_ref::Source;
     match input.and_then(|i| i.source.as_ref()) {
@@ -395,14 +428,14 @@ pub async fn resolve_input(
             "missing: give an upload_id or an object_key",
         )),
         Some(Source::UploadId(id)) => {
-            let row: Option<(String, String, String)> =
-                sqlx::query_as("SELECT owner, kind, key FROM uploads WHERE id = ?")
+            let row: Option<(String, String, String, Option<bool>)> =
+                sqlx::query_as("SELECT owner, kind, key, train_depth FROM uploads WHERE id = ?")
                     .bind(id)
                     .fetch_optional(&shared.db.read)
                     .await
                     .map_err(internal)?;
             match row {
-                Some((owner, stored_kind, key)) if caller.can_see(&owner) => {
+                Some((owner, stored_kind, key, train_depth)) if caller.can_see(&owner) => {
                     let Some(kind) =
                         InputKind::parse(&stored_kind).filter(|k| accepted.contains(k))
                     else {
@@ -416,7 +449,12 @@ pub async fn resolve_input(
                         ));
                     };
                     let extension = key.rsplit('.').next().unwrap_or("bin").to_string();
-                    Ok((key, extension, kind))
+                    Ok(ResolvedInput {
+                        key,
+                        extension,
+                        kind,
+                        facts: train_depth.map(|train_depth| DatasetFacts { train_depth }),
+                    })
                 }
                 _ => Err(invalid(
                     format!("{field}.upload_id"),
@@ -446,10 +484,15 @@ pub async fn resolve_input(
             }
             let spool = spool_file(shared)?;
             shared.storage.get_to_file(key, spool.path()).await?;
-            let (_, extension) = validate_file(shared, kind, spool.path().to_path_buf())
+            let validated = validate_file(shared, kind, spool.path().to_path_buf())
                 .await?
                 .map_err(|why| invalid(&key_field, why))?;
-            Ok((key.clone(), extension.to_string(), kind))
+            Ok(ResolvedInput {
+                key: key.clone(),
+                extension: validated.extension.to_string(),
+                kind,
+                facts: validated.facts,
+            })
         }
     }
 }

@@ -408,14 +408,26 @@ mod tests {
             .map(|e| e.unwrap().path())
             .find(|p| p.extension().is_some_and(|e| e == "png"))
             .unwrap();
+        // The same scene without its depth maps.
+        let flat = dir.path().join("flat");
+        generate(&options, &flat).unwrap();
+        let transforms = flat.join("transforms.json");
+        let mut meta: Value =
+            serde_json::from_str(&std::fs::read_to_string(&transforms).unwrap()).unwrap();
+        for frame in meta["frames"].as_array_mut().unwrap() {
+            frame.as_object_mut().unwrap().remove("depth_file_path");
+        }
+        std::fs::write(&transforms, meta.to_string()).unwrap();
         let (scene, style) = (scene.display().to_string(), style.display().to_string());
         let common = ["--endpoint", endpoint.as_str(), "--output", "json"];
 
+        // (A depth loss is accepted for a dataset with depth maps.)
         let submit = [
             &[
                 "submit", "--data", &scene, "--style", &style, "--preset", "tiny",
             ][..],
             &["--set", "nerf_pretrain.steps=10", "--blend", "0:1"],
+            &["--set", "nerf_pretrain.depth_weight=0.1"],
             &common,
         ]
         .concat();
@@ -445,6 +457,30 @@ mod tests {
                 "{set}: {err}"
             );
         }
+        // So is what a stage would refuse on this dataset: a depth loss without depth maps.
+        let without_depth = [
+            &[
+                "submit",
+                "--data",
+                flat.to_str().unwrap(),
+                "--style",
+                &style,
+            ][..],
+            &[
+                "--preset",
+                "tiny",
+                "--set",
+                "nerf_pretrain.depth_weight=0.1",
+            ],
+            &common,
+        ]
+        .concat();
+        let err = run_line(&without_depth).await.unwrap_err().to_string();
+        assert!(
+            err.contains("config_overrides_json.nerf_pretrain.depth_weight")
+                && err.contains("depth map"),
+            "{err}"
+        );
         let submitted: Value = serde_json::from_str(&run_line(&submit).await.unwrap()).unwrap();
         assert_eq!(submitted["created"], true);
         // Proto JSON: the messages read back with the protocol's own JSON mapping.

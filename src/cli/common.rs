@@ -7,10 +7,10 @@ use std::time::Duration;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use stylenerf_engine::device::parse_device;
-use stylenerf_engine::stages::dispatch::check_job_overrides;
+use stylenerf_engine::stages::dispatch::{check_dataset_overrides, check_job_overrides};
 use stylenerf_engine::stages::StageControl;
 use stylenerf_plan::settings::{apply_overrides, parse_override};
-use stylenerf_plan::{bounds, Preset, Stage};
+use stylenerf_plan::{bounds, DatasetFacts, Preset, Stage};
 use stylenerf_server::CoordinatorConfig;
 
 /// Preset, overrides and device, shared by every training command.
@@ -64,8 +64,17 @@ impl stylenerf_server::EngineChecks for EngineChecks {
         check_job_overrides(preset, overrides)
     }
 
-    fn dataset(&self, archive: &Path) -> Result<(), String> {
+    fn dataset(&self, archive: &Path) -> Result<DatasetFacts, String> {
         stylenerf_worker::archive::check_dataset(archive)
+    }
+
+    fn dataset_settings(
+        &self,
+        preset: &str,
+        overrides: &serde_json::Map<String, serde_json::Value>,
+        dataset: &DatasetFacts,
+    ) -> Vec<(String, String)> {
+        check_dataset_overrides(preset, overrides, dataset)
     }
 }
 

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use stylenerf_engine::scene::{LoadOptions, Scene};
 use stylenerf_plan::scene_format::{
-    find_photos, find_scene, MAX_SCENE_DEPTH, MIN_PHOTOS, NO_SCENE,
+    find_photos, find_scene, DatasetFacts, MAX_SCENE_DEPTH, MIN_PHOTOS, NO_SCENE,
 };
 
 use crate::error::TaskError;
@@ -136,8 +136,8 @@ const CHECK_SIDE: u32 = 64;
 /// folder beside it (the coordinator's spool folder, which the operator sized for uploads),
 /// its scene found and loaded with the stages' loader and their default options (every
 /// image decoded, at a small working resolution). The error names the file (relative to the
-/// archive), the field and the reason.
-pub fn check_dataset(archive: &Path) -> Result<(), String> {
+/// archive), the field and the reason. Returns what settings depend on.
+pub fn check_dataset(archive: &Path) -> Result<DatasetFacts, String> {
     let beside = archive.parent().unwrap_or(Path::new("."));
     let dir = tempfile::tempdir_in(beside)
         .map_err(|e| format!("a temporary folder in {}: {e}", beside.display()))?;
@@ -162,7 +162,10 @@ pub fn check_dataset(archive: &Path) -> Result<(), String> {
         .path()
         .canonicalize()
         .unwrap_or(dir.path().to_path_buf());
-    loaded.map(drop).map_err(|why| {
+    let facts = |scene: Scene| DatasetFacts {
+        train_depth: scene.train.iter().any(|&i| scene.frames[i].depth.is_some()),
+    };
+    loaded.map(facts).map_err(|why| {
         [dir.path(), canonical.as_path()]
             .iter()
             .fold(why, |why, d| why.replace(&format!("{}/", d.display()), ""))

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use candle_core::Device;
 use serde::Serialize;
 use stylenerf_plan::settings::{configure, flatten_overrides};
-use stylenerf_plan::{Override, Preset, Stage};
+use stylenerf_plan::{DatasetFacts, Override, Preset, Stage};
 
 use crate::checkpoint::CheckpointDir;
 use crate::field::saved;
@@ -276,6 +276,31 @@ pub fn check_job_overrides(
     problems
 }
 
+/// Checks a job's overrides (already found valid by [`check_job_overrides`]) against what its
+/// dataset holds: what a stage would refuse on this dataset, as `(key, reason)`.
+pub fn check_dataset_overrides(
+    preset: &str,
+    overrides: &serde_json::Map<String, serde_json::Value>,
+    dataset: &DatasetFacts,
+) -> Vec<(String, String)> {
+    let Ok(preset) = preset.parse::<Preset>() else {
+        return Vec::new();
+    };
+    let overrides = &flatten_overrides(overrides);
+    let mut problems = Vec::new();
+    if let Ok(StageConfig::NerfPretrain(cfg)) =
+        StageConfig::new(Stage::NerfPretrain, preset, overrides)
+    {
+        let refusal = (!dataset.train_depth)
+            .then(|| nerf_pretrain::without_depth(&cfg, "the dataset"))
+            .flatten();
+        if let Some(EngineError::Config { field, reason }) = refusal {
+            problems.push((field, reason));
+        }
+    }
+    problems
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -287,6 +312,24 @@ mod tests {
             .map(|o| parse_override(o).unwrap())
             .collect();
         check_job_overrides(preset, &parsed)
+    }
+
+    #[test]
+    fn a_depth_loss_is_refused_for_a_dataset_without_depth_naming_the_key() {
+        let overrides = ["nerf_pretrain.depth_weight=0.1"]
+            .iter()
+            .map(|o| parse_override(o).unwrap())
+            .collect();
+        let without = DatasetFacts { train_depth: false };
+        let problems = check_dataset_overrides("quick", &overrides, &without);
+        assert_eq!(problems.len(), 1, "{problems:?}");
+        assert_eq!(problems[0].0, "nerf_pretrain.depth_weight");
+        assert!(problems[0].1.contains("depth map"), "{problems:?}");
+        let with = DatasetFacts { train_depth: true };
+        assert_eq!(check_dataset_overrides("quick", &overrides, &with), []);
+        // Without the setting, no dataset lacks anything.
+        let none = serde_json::Map::new();
+        assert_eq!(check_dataset_overrides("quick", &none, &without), []);
     }
 
     #[test]

@@ -261,6 +261,21 @@ fn training_rays(scene: &Scene) -> (RayBatch, Vec<f32>, Option<Vec<f32>>) {
     (rays, colours, has_depth.then_some(depths))
 }
 
+/// Why `cfg` cannot train on `dataset` when none of its training frames has a depth map, if it
+/// cannot: the stage's refusal at its start, and the coordinator's at submission.
+pub fn without_depth(cfg: &NerfConfig, dataset: &str) -> Option<EngineError> {
+    (cfg.depth_weight > 0.0).then(|| {
+        EngineError::config(
+            "nerf_pretrain.depth_weight",
+            format!(
+                "is {} but no training frame of {dataset} has a depth map \
+                 (frames[].depth_file_path)",
+                cfg.depth_weight
+            ),
+        )
+    })
+}
+
 /// The depth loss of [`NerfConfig::depth_weight`] over a batch: `out`'s expected depth and
 /// opacity [R] against the rays' known depths (0 = unknown); `None` when no ray has one.
 fn depth_loss(
@@ -329,14 +344,8 @@ pub fn run(
         (false, _) => None,
         (true, Some(d)) => Some(d),
         (true, None) => {
-            return Err(EngineError::config(
-                "nerf_pretrain.depth_weight",
-                format!(
-                    "is {} but no training frame of {} has a depth map (frames[].depth_file_path)",
-                    cfg.depth_weight,
-                    scene.root.display()
-                ),
-            ))
+            let refusal = without_depth(cfg, &scene.root.display().to_string());
+            return Err(refusal.expect("depth_weight > 0"));
         }
     };
     let mut rng = Rng::new(cfg.seed);

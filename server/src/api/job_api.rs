@@ -290,7 +290,7 @@ impl JobApi {
                 });
             }
         }
-        let (dataset_source, dataset_extension, dataset_kind) = resolve_input(
+        let dataset = resolve_input(
             shared,
             caller,
             "dataset",
@@ -298,7 +298,19 @@ impl JobApi {
             req.dataset.as_ref(),
         )
         .await?;
-        let source = match (dataset_kind, dataset_extension.as_str()) {
+        // What a stage would refuse on this dataset (a depth loss without depth maps).
+        if let (Some(checks), Some(facts)) = (&shared.config.engine_checks, &dataset.facts) {
+            let refused: Vec<Violation> = checks
+                .dataset_settings(&preset, &overrides, facts)
+                .into_iter()
+                .map(|(key, reason)| Violation::new(format!("config_overrides_json.{key}"), reason))
+                .collect();
+            if !refused.is_empty() {
+                return Err(invalid_all(refused));
+            }
+        }
+        let (dataset_source, dataset_extension) = (dataset.key, dataset.extension);
+        let source = match (dataset.kind, dataset_extension.as_str()) {
             (InputKind::Photos, "tar") => Source::Photos,
             (InputKind::Photos, _) => Source::Video,
             _ => Source::Dataset,
@@ -314,7 +326,7 @@ impl JobApi {
                     Some(style),
                 )
                 .await
-                .map(|(key, extension, _)| (key, extension))?,
+                .map(|style| (style.key, style.extension))?,
             );
         }
         let mut input_bytes = shared.storage.size(&dataset_source).await?;
