@@ -7,82 +7,54 @@
 //!
 //! Samples are sorted along each ray, so with prefix sums `W_<i = Σ_{j<i} w_j` and
 //! `M_<i = Σ_{j<i} w_j m_j` the double sum is `2 Σ_i w_i (m_i W_<i − M_<i)` (O(S)), and
-//! `∂L/∂w_i = 2 (m_i W_<i − M_<i + M_>i − m_i W_>i) + ⅔ w_i δ_i`. The weights depend on σ as in
-//! compositing: `∂L/∂σ_k = δ_k (T_{k+1} g_k − Σ_{j>k} w_j g_j)` with `g = ∂L/∂w`.
-//!
-//! The loss and its gradient are computed together in f64 on the host and returned as a
-//! tensor whose value is the loss and whose gradient with respect to σ is the analytic one
-//! (`σ·g − stop_gradient(σ·g) + L`), so it works on every device without a kernel of its own.
+//! `∂L/∂w_i = 2 (m_i W_<i − M_<i + M_>i − m_i W_>i) + ⅔ w_i δ_i`, taken to σ on the host by
+//! [`super::weight_loss`].
+
+use std::ops::Range;
 
 use candle_core::Tensor;
 
+use super::weight_loss::weight_loss;
 use crate::rays::PackedRays;
 use crate::Result;
 
 /// Mean distortion loss over the rays of `rays` for densities `sigma` [S], differentiable in σ.
 pub fn distortion_loss(sigma: &Tensor, rays: &PackedRays) -> Result<Tensor> {
-    let s: Vec<f32> = sigma.to_dtype(candle_core::DType::F32)?.to_vec1()?;
-    let (loss, grad) = loss_and_grad(&s, rays);
-    let n = rays.num_rays().max(1) as f64;
-    let g = Tensor::from_vec(
-        grad.iter().map(|g| (g / n) as f32).collect::<Vec<_>>(),
-        s.len(),
-        sigma.device(),
-    )?
-    .to_dtype(sigma.dtype())?;
-    let linear = (sigma * &g)?.sum_all()?;
-    Ok(((&linear - linear.detach())? + loss / n)?)
+    weight_loss(
+        sigma,
+        rays,
+        rays.num_rays().max(1) as f64,
+        |_, range, w, g| distortion(rays, range, w, g),
+    )
+}
+
+/// One ray's distortion loss (samples `range` of `rays`, weights `w`); writes `∂L/∂w` into `g`.
+fn distortion(rays: &PackedRays, range: Range<usize>, w: &[f64], g: &mut [f64]) -> f64 {
+    let mid = |k: usize| rays.distances[k] as f64 + 0.5 * rays.deltas[k] as f64;
+    let (sum_w, sum_wm): (f64, f64) = range
+        .clone()
+        .zip(w)
+        .map(|(k, &wk)| (wk, wk * mid(k)))
+        .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+    // The loss and g_i = ∂L/∂w_i, with running prefix sums.
+    let (mut w_before, mut wm_before) = (0.0f64, 0.0f64);
+    let mut total = 0.0;
+    for (i, k) in range.enumerate() {
+        let (m, wi, delta) = (mid(k), w[i], rays.deltas[k] as f64);
+        let w_after = sum_w - w_before - wi;
+        let wm_after = sum_wm - wm_before - wi * m;
+        total += 2.0 * wi * (m * w_before - wm_before) + wi * wi * delta / 3.0;
+        g[i] = 2.0 * (m * w_before - wm_before + wm_after - m * w_after) + 2.0 * wi * delta / 3.0;
+        w_before += wi;
+        wm_before += wi * m;
+    }
+    total
 }
 
 /// Sum over rays of the distortion loss, and its gradient with respect to each σ.
+#[cfg(test)]
 fn loss_and_grad(sigma: &[f32], rays: &PackedRays) -> (f64, Vec<f64>) {
-    let mut total = 0.0;
-    let mut grad = vec![0.0; sigma.len()];
-    let mut w = Vec::new();
-    let mut trans_after = Vec::new();
-    for window in rays.offsets.windows(2) {
-        let range = window[0] as usize..window[1] as usize;
-        if range.is_empty() {
-            continue;
-        }
-        // Weights and the transmittance after each sample.
-        w.clear();
-        trans_after.clear();
-        let mut trans = 1.0f64;
-        for k in range.clone() {
-            let decay = (-(sigma[k] as f64) * rays.deltas[k] as f64).exp();
-            w.push(trans * (1.0 - decay));
-            trans *= decay;
-            trans_after.push(trans);
-        }
-        let mid = |k: usize| rays.distances[k] as f64 + 0.5 * rays.deltas[k] as f64;
-        let (sum_w, sum_wm): (f64, f64) = range
-            .clone()
-            .zip(&w)
-            .map(|(k, &wk)| (wk, wk * mid(k)))
-            .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
-        // g_i = ∂L/∂w_i, and the loss, with running prefix sums.
-        let (mut w_before, mut wm_before) = (0.0f64, 0.0f64);
-        let mut g = Vec::with_capacity(w.len());
-        for (i, k) in range.clone().enumerate() {
-            let (m, wi, delta) = (mid(k), w[i], rays.deltas[k] as f64);
-            let w_after = sum_w - w_before - wi;
-            let wm_after = sum_wm - wm_before - wi * m;
-            total += 2.0 * wi * (m * w_before - wm_before) + wi * wi * delta / 3.0;
-            g.push(
-                2.0 * (m * w_before - wm_before + wm_after - m * w_after) + 2.0 * wi * delta / 3.0,
-            );
-            w_before += wi;
-            wm_before += wi * m;
-        }
-        // Through the weights to σ: suffix sums of w g.
-        let mut after = 0.0f64;
-        for (i, k) in range.enumerate().rev() {
-            grad[k] = rays.deltas[k] as f64 * (trans_after[i] * g[i] - after);
-            after += w[i] * g[i];
-        }
-    }
-    (total, grad)
+    super::weight_loss::loss_and_grad(sigma, rays, |_, range, w, g| distortion(rays, range, w, g))
 }
 
 #[cfg(test)]

@@ -2,8 +2,10 @@
 //! opaque surfaces, evaluating the field, compositing, and whole images in chunks.
 
 pub mod composite;
+pub mod depth_supervision;
 pub mod distortion;
 pub mod march;
+pub mod weight_loss;
 
 use std::sync::Arc;
 

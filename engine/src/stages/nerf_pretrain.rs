@@ -21,6 +21,7 @@ use crate::field::space::FieldSpace;
 use crate::optim::{Adam, AdamConfig, LrSchedule};
 use crate::per_view::per_view;
 use crate::rays::{RayBatch, SamplingConfig};
+use crate::render::depth_supervision::depth_supervision_loss;
 use crate::render::distortion::distortion_loss;
 use crate::render::{render_image, render_rays, step_size};
 use crate::rng::Rng;
@@ -65,13 +66,15 @@ pub struct NerfConfig {
     /// or empty, so a real background is left to the background model instead of haze, and a
     /// wall is not left partly to it. Applied when the background is learned.
     pub opacity_entropy: f64,
-    /// Weight of the depth loss (as depth-nerfacto and DS-NeRF use): on each training ray whose
-    /// pixel has a known depth `d` in its frame's depth map (a depth camera's, or sparse points
-    /// from structure from motion; 0 = unknown), `((D − d) / d)² + (1 − O)²` with `D` the
-    /// rendered expected depth and `O` the opacity, averaged over those rays. 0 (the default):
-    /// the field learns from the photos alone and depth maps only grade it. Photos alone can
-    /// leave a field in a wrong geometry it does not leave (a room around the cameras:
-    /// BENCHMARKS.md, "The room, a fourth look").
+    /// Weight of DS-NeRF's depth-supervision loss (as depth-nerfacto uses it; see
+    /// [`crate::render::depth_supervision`]): on each training ray whose pixel has a known
+    /// depth `d` in its frame's depth map (a depth camera's, or sparse points from structure
+    /// from motion; 0 = unknown), the cross-entropy between a narrow Gaussian around `d` and the
+    /// ray's compositing weights, averaged over those rays. 0 (the default): the field learns
+    /// from the photos alone and depth maps only grade it. Photos alone can leave a field in a
+    /// wrong geometry it does not leave (a room around the cameras: BENCHMARKS.md, "The room,
+    /// a fourth look"); 0.001 finds it and keeps a sky clear ("Depth supervision that leaves a
+    /// sky empty").
     #[serde(default)]
     pub depth_weight: f64,
     /// Measure test PSNR every this many steps (0: only at the end); the time spent measuring
@@ -276,33 +279,6 @@ pub fn without_depth(cfg: &NerfConfig, dataset: &str) -> Option<EngineError> {
     })
 }
 
-/// The depth loss of [`NerfConfig::depth_weight`] over a batch: `out`'s expected depth and
-/// opacity [R] against the rays' known depths (0 = unknown); `None` when no ray has one.
-fn depth_loss(
-    depth: &candle_core::Tensor,
-    opacity: &candle_core::Tensor,
-    known: &[f32],
-) -> Result<Option<candle_core::Tensor>> {
-    let count = known.iter().filter(|&&d| d > 0.0).count();
-    if count == 0 {
-        return Ok(None);
-    }
-    let dev = depth.device();
-    let mask: Vec<f32> = known.iter().map(|&d| f32::from(d > 0.0)).collect();
-    let inverse: Vec<f32> = known
-        .iter()
-        .map(|&d| if d > 0.0 { 1.0 / d } else { 0.0 })
-        .collect();
-    let n = known.len();
-    let mask = candle_core::Tensor::from_vec(mask, n, dev)?;
-    let inverse = candle_core::Tensor::from_vec(inverse, n, dev)?;
-    // (D − d) / d = D / d − 1 on known rays, 0 elsewhere.
-    let relative = ((depth * &inverse)? - &mask)?;
-    let transparency = ((1.0 - opacity)? * &mask)?;
-    let sum = (relative.sqr()? + transparency.sqr()?)?.sum_all()?;
-    Ok(Some((sum / count as f64)?))
-}
-
 /// Mean binary entropy of opacities [R] (clamped away from 0 and 1, where it has no slope).
 fn opacity_entropy(opacity: &candle_core::Tensor) -> Result<candle_core::Tensor> {
     let o = opacity.clamp(1e-4, 1.0 - 1e-4)?;
@@ -418,7 +394,11 @@ pub fn run(
         }
         if let Some(depths) = &depths {
             let known: Vec<f32> = idx.iter().map(|&i| depths[i]).collect();
-            if let Some(l) = depth_loss(&out.depth, &out.opacity, &known)? {
+            let l = match &out.samples {
+                Some((sigma, packed)) => depth_supervision_loss(sigma, packed, &known)?,
+                None => None,
+            };
+            if let Some(l) = l {
                 loss = (loss + (l * cfg.depth_weight)?)?;
             }
         }
@@ -646,25 +626,4 @@ fn evaluate(
         empty_opacity: depth.empty_opacity(),
         opacity: (pixels > 0).then(|| opacity / pixels as f64),
     })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use candle_core::Tensor;
-
-    #[test]
-    fn the_depth_loss_counts_only_rays_with_a_known_depth() {
-        let dev = Device::Cpu;
-        let depth = Tensor::new(&[1.0f32, 5.0, 3.0], &dev).unwrap();
-        let opacity = Tensor::new(&[0.5f32, 0.1, 1.0], &dev).unwrap();
-        // Ray 0: (1/2 − 1)² + (1 − 0.5)² = 0.5; ray 1 unknown; ray 2: (3/2 − 1)² + 0 = 0.25.
-        let loss = depth_loss(&depth, &opacity, &[2.0, 0.0, 2.0])
-            .unwrap()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
-        assert!((loss - 0.375).abs() < 1e-6, "{loss}");
-        assert!(depth_loss(&depth, &opacity, &[0.0; 3]).unwrap().is_none());
-    }
 }
