@@ -28,14 +28,15 @@ pub fn depth_supervision_loss(
     rays: &PackedRays,
     known: &[f32],
 ) -> Result<Option<Tensor>> {
-    let counted = (0..rays.num_rays())
-        .filter(|&r| target(rays, r, known[r]).is_some())
-        .count();
+    let targets: Vec<Option<Vec<f64>>> = (0..rays.num_rays())
+        .map(|r| target(rays, r, known[r]))
+        .collect();
+    let counted = targets.iter().flatten().count();
     if counted == 0 {
         return Ok(None);
     }
     let loss = weight_loss(sigma, rays, counted as f64, |r, _, w, g| {
-        cross_entropy(target(rays, r, known[r]).as_deref(), w, g)
+        cross_entropy(targets[r].as_deref(), w, g)
     })?;
     Ok(Some(loss))
 }

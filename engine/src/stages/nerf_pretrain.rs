@@ -316,14 +316,12 @@ pub fn run(
         ));
     }
     let (rays, colours, depths) = training_rays(scene);
-    let depths = match (cfg.depth_weight > 0.0, depths) {
-        (false, _) => None,
-        (true, Some(d)) => Some(d),
-        (true, None) => {
-            let refusal = without_depth(cfg, &scene.root.display().to_string());
-            return Err(refusal.expect("depth_weight > 0"));
+    if depths.is_none() {
+        if let Some(refusal) = without_depth(cfg, &scene.root.display().to_string()) {
+            return Err(refusal);
         }
-    };
+    }
+    let depths = depths.filter(|_| cfg.depth_weight > 0.0);
     let mut rng = Rng::new(cfg.seed);
     let mut field = RadianceField::new(cfg.field, FieldSpace::for_scene(scene), &mut rng, device)?;
     let threshold = sigma_threshold(&field, &rays, cfg);
